@@ -1,0 +1,1 @@
+"""Host-side optimisation loops of octcl (NumPy Adam, torch losses on the CPU)."""

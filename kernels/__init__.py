@@ -1,0 +1,1 @@
+"""OpenCL kernel sources of octcl, one operation per file."""
