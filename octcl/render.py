@@ -1,0 +1,110 @@
+"""Rendering a phantom to a B-scan: the public ``render`` and the display maths.
+
+The Virtual Scanner turns complex A-scans A (``kernels/scanner.cl`` or the
+float64 reference) into the display
+
+    D = max(dB − max(dB) + 51, 0) / 51,   dB = 20·log10 |A|,
+
+and 8-bit PNG levels. :func:`display_vjp` is the adjoint of that map, so a
+loss on D (or on the 8-bit image through a straight-through estimator) can be
+pulled back to the A-scans and, by the kernels' adjoint, to every scatterer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _reference as ref
+from .config import DEFAULT_CONFIG, ScannerConfig
+from .phantom import Phantom
+
+#: ∂D/∂ln|A| for a pixel above the display floor: 20 / (51·ln 10).
+DISPLAY_SLOPE = 20.0 / (ref.DISPLAY_RANGE_DB * np.log(10.0))
+
+
+@dataclass
+class Rendering:
+    """A rendered B-scan, (Nz, Nx) arrays.
+
+    Attributes
+    ----------
+    a_scans : ndarray of complex128
+        The complex A-scans A[n, i] (depth row n, A-scan i).
+    magnitude : ndarray of float64
+        |A| with exact zeros replaced by 1e−10.
+    display : ndarray of float64
+        D in [0, 1].
+    levels : ndarray of uint8
+        The 8-bit levels the scanner writes to its PNG.
+    """
+
+    a_scans: np.ndarray
+    magnitude: np.ndarray
+    display: np.ndarray
+    levels: np.ndarray
+
+    @classmethod
+    def from_a_scans(cls, a_scans: np.ndarray) -> "Rendering":
+        """Steps 8–11 of the scanner from complex A-scans."""
+        magnitude = np.abs(a_scans)
+        magnitude[magnitude == 0] = ref.MAGNITUDE_FLOOR
+        display = ref.to_display(ref.to_decibels(magnitude))
+        return cls(a_scans=a_scans, magnitude=magnitude, display=display, levels=ref.quantise(display))
+
+
+def display_vjp(rendering: Rendering, grad_display: np.ndarray) -> np.ndarray:
+    """Pull ∂L/∂D back to Ā = ∂L/∂Re A + i·∂L/∂Im A.
+
+    For a pixel above the floor, D = 1 + DISPLAY_SLOPE·(ln|A| − ln max|A|), so
+
+        ∂L/∂|A|_n = g_n·s/|A|_n  and, at the brightest pixel, −s·Σ_n g_n / max|A|,
+
+    summed over unclipped pixels n (s = DISPLAY_SLOPE). Clipped pixels
+    (D = 0) and floored zeros pass no gradient. Then Ā = ∂L/∂|A|·A/|A|.
+    """
+    magnitude = rendering.magnitude
+    unclipped = (rendering.display > 0) & (np.abs(rendering.a_scans) > 0)
+    grad = np.where(unclipped, grad_display, 0.0) * DISPLAY_SLOPE
+    grad_magnitude = grad / magnitude
+    brightest = np.unravel_index(np.argmax(magnitude), magnitude.shape)
+    grad_magnitude[brightest] -= grad.sum() / magnitude[brightest]
+    return grad_magnitude * rendering.a_scans / magnitude
+
+
+def render(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG, backend: str = "opencl",
+           device=None, settings=None) -> Rendering:
+    """Render a phantom with the Virtual Scanner.
+
+    Parameters
+    ----------
+    phantom : Phantom
+        The scatterers; validated against ``config`` first.
+    config : ScannerConfig
+        Scanner geometry and optics.
+    backend : {"opencl", "numpy"}
+        The OpenCL kernels (default) or the float64 NumPy reference.
+    device : str, optional
+        OpenCL device choice (see :mod:`octcl._runtime`).
+    settings : KernelSettings, optional
+        Accuracy knobs of the kernels.
+
+    Returns
+    -------
+    Rendering
+    """
+    phantom.validate(config)
+    if backend == "numpy":
+        spectra = ref.render_spectra(phantom, config)
+        a_scans = np.fft.ifft(spectra * ref.hann_window(config.depth_pixels)[:, None], axis=0)
+        return Rendering.from_a_scans(a_scans)
+    if backend != "opencl":
+        raise ValueError(f"unknown backend {backend!r}; use 'opencl' or 'numpy'")
+    from ._scanner_op import KernelSettings, ScannerKernels
+
+    kernels = ScannerKernels(config, settings or KernelSettings(), device)
+    with np.errstate(divide="ignore"):
+        log_energy = np.log(phantom.energy_pct)
+    kernels.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
+    return Rendering.from_a_scans(kernels.forward())

@@ -1,0 +1,51 @@
+"""Shared pytest fixtures."""
+
+from pathlib import Path
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The reference data folder, /work/shared/data (see its README.md)."""
+    path = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    assert path.is_dir(), f"reference data folder missing: {path}"
+    return path
+
+
+@pytest.fixture(scope="session")
+def lpips_weights() -> Path:
+    """The cached LPIPS weights; fails (not skips) with the fetch hint when missing."""
+    from octcl._lpips import WeightsMissingError, check_weights
+
+    try:
+        return check_weights()
+    except WeightsMissingError as exc:
+        pytest.fail(str(exc), pytrace=False)
+
+
+@pytest.fixture(scope="session")
+def official_uniform_metrics(shared_data) -> dict:
+    """Official MS-SSIM and LPIPS of Uniform_A against Uniform_B: {map: {metric: value}}."""
+    import csv
+
+    with open(shared_data / "official" / "metrics_exp1_uniform.csv", newline="") as handle:
+        return {
+            row["Map_Type"]: {"MS-SSIM": float(row["MS-SSIM"]), "LPIPS": float(row["LPIPS"])}
+            for row in csv.DictReader(handle)
+        }
+
+
+@pytest.fixture(scope="session")
+def official_uniform_maps(shared_data) -> tuple[dict, dict]:
+    """The official Struct/OAC/SC/RSC map PNGs of Uniform_A and Uniform_B as the metric reads them."""
+    from octcl.score import _read_map_for_metrics
+
+    def maps(scan):
+        suffixes = {"Struct": "", "OAC": "_OAC", "SC": "_SC", "RSC": "_RSC"}
+        return {
+            name: _read_map_for_metrics(shared_data / "official" / f"Scan_{scan}{suffix}.png")
+            for name, suffix in suffixes.items()
+        }
+
+    return maps("Exp1_Uniform_A"), maps("Exp1_Uniform_B")
