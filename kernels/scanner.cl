@@ -229,9 +229,11 @@ __kernel void render_adjoint(const ScannerParams p,
 
     /* X̄ = FFT(Ā)·H, then the two grid adjoints b̄ = IFFT(X̄), b̄' = IFFT(s·X̄). */
     complex_t grid_bar[GRID], grid_bar_s[GRID];
-    for (int n = 0; n < NZ; ++n) grid_bar[n] = a_scan_bar[(size_t)i * NZ + n];
+    for (int l = 0; l < GRID; ++l) {
+        grid_bar[l] = l < NZ ? a_scan_bar[(size_t)i * NZ + l] : (complex_t)(0, 0);
+        grid_bar_s[l] = (complex_t)(0, 0);
+    }
     fft(grid_bar, LOG2_NZ, -1, twiddle);
-    for (int l = 0; l < GRID; ++l) grid_bar_s[l] = (complex_t)(0, 0);
     for (int q = NZ - 1; q >= 0; --q) { /* descending: q + NZ is written before q is read */
         const complex_t x_bar = transfer[q] * grid_bar[q];
         const int s = q <= NZ / 2 ? q : q - NZ;

@@ -134,9 +134,10 @@ class ScannerKernels:
         self.count = 0
 
     def _upload(self, array: np.ndarray):
+        """A read-only device copy; an empty array becomes one zero element (OpenCL has no empty buffers)."""
         mf = self._cl.mem_flags
-        return self._cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                               hostbuf=np.ascontiguousarray(array))
+        array = np.ascontiguousarray(array) if array.size else np.zeros(1, array.dtype)
+        return self._cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=array)
 
     # ------------------------------------------------------------ geometry
     def set_phantom(self, x_um, y_um, z_um, log_energy) -> None:
