@@ -103,8 +103,11 @@ def wavenumbers(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
 
 def spectrum(z_um: np.ndarray, weight: np.ndarray, k: np.ndarray) -> np.ndarray:
     """Step 6: S(k_q) = Σ_j w_j·exp(−2i·k_q·z_j), with w_j = T_j·a_j·B_j (n = 1)."""
-    phase = -2.0 * np.outer(k, z_um)
-    return np.exp(1j * phase) @ weight
+    total = np.zeros(k.size, dtype=np.complex128)
+    for start in range(0, z_um.size, 8192):  # bounded memory: Nz × 8192 phases at a time
+        phase = -2.0 * np.outer(k, z_um[start:start + 8192])
+        total += np.exp(1j * phase) @ weight[start:start + 8192]
+    return total
 
 
 def hann_window(nz: int) -> np.ndarray:
@@ -181,9 +184,10 @@ def render_spectra(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG,
         beam = beam_weight(dx, phantom.y_um[near], w0)
         beam_amplitude = beam * amplitude[near]
         transmission = shadow_transmission(beam_amplitude) if shadowing else np.ones(near.size)
-        contributes = in_contribution_window(dx, phantom.y_um[near], w0)
-        spectra[:, i] = spectrum(phantom.z_um[near][contributes],
-                                 (transmission * beam_amplitude)[contributes], k)
+        weight = transmission * beam_amplitude
+        # Zero weights (behind a mirror, E = 0) add exactly 0: leave them out.
+        contributes = in_contribution_window(dx, phantom.y_um[near], w0) & (weight != 0)
+        spectra[:, i] = spectrum(phantom.z_um[near][contributes], weight[contributes], k)
     return spectra
 
 
