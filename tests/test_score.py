@@ -1,0 +1,152 @@
+"""The SynthOCT score: map reading as the official metric, components, directories."""
+
+import csv
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from octcl._io import read_png_rgb, write_grey_png
+from octcl.score import (
+    COMPONENTS,
+    MAP_NAMES,
+    _levels_for_metrics,
+    _msssim_input,
+    _read_map_for_metrics,
+    score,
+    score_directories,
+    score_maps,
+    write_score_csv,
+)
+
+UNIFORM_A = "Scan_Exp1_Uniform_A.png"
+UNIFORM_B = "Scan_Exp1_Uniform_B.png"
+LAYERS_A = "Scan_Exp2_Layers_A.png"
+
+
+def _skimage_reading(path):
+    from skimage.io import imread
+    from skimage.util import img_as_float
+
+    return img_as_float(imread(path, as_gray=True))
+
+
+def _all_levels_image():
+    levels = np.random.default_rng(0).integers(0, 256, (256, 512)).astype(np.uint8)
+    levels[0, :256] = np.arange(256)
+    return levels
+
+
+def _assert_official(components, official, name):
+    assert components[f"msssim_{name}"] == pytest.approx(official[name]["MS-SSIM"], abs=1e-12), name
+    assert 1 - components[f"one_minus_lpips_{name}"] == pytest.approx(official[name]["LPIPS"], abs=1e-6), name
+
+
+def test_levels_for_metrics_equals_reading_the_png(tmp_path):
+    """All 256 levels of an opaque grey RGBA PNG: in-memory and file readings identical."""
+    levels = _all_levels_image()
+    write_grey_png(tmp_path / "levels.png", levels)
+    np.testing.assert_array_equal(_levels_for_metrics(levels), _read_map_for_metrics(tmp_path / "levels.png"))
+
+
+@pytest.mark.parametrize("kind", ["grey RGBA", "RGB", "translucent RGBA", "grey"])
+def test_reading_is_skimage_as_gray_up_to_the_last_bit(tmp_path, kind):
+    """Same steps as ``imread(as_gray=True)`` + ``img_as_float``, but for the luminance sum's last bit.
+
+    scikit-image forms the luminance with a BLAS matrix product whose rounding
+    depends on the build (fused multiply-adds or not); the scorer sums left
+    to right, which is what reproduces the official values exactly.
+    """
+    rng = np.random.default_rng(1)
+    levels = _all_levels_image()
+    if kind == "grey RGBA":
+        write_grey_png(tmp_path / "map.png", levels)
+    else:
+        rgba = rng.integers(0, 256, (256, 512, 4)).astype(np.uint8)
+        rgba[0, :256, :3] = np.arange(256)[:, None]
+        image = {"RGB": Image.fromarray(rgba[..., :3]), "translucent RGBA": Image.fromarray(rgba),
+                 "grey": Image.fromarray(levels)}[kind]
+        image.save(tmp_path / "map.png")
+    ours, skimage_value = _read_map_for_metrics(tmp_path / "map.png"), _skimage_reading(tmp_path / "map.png")
+    assert ours.shape == (256, 512) and ours.dtype == np.float64
+    np.testing.assert_allclose(ours, skimage_value, rtol=0, atol=2 * np.spacing(1.0))
+
+
+def test_msssim_input_truncation():
+    """33 levels read just below v/255 and become v − 1 in MS-SSIM's input; no other change."""
+    levels = np.arange(256, dtype=np.uint8)[None]
+    truncated = _msssim_input(_levels_for_metrics(levels))[0].astype(int)
+    assert set(np.unique(levels[0] - truncated)) == {0, 1}
+    assert np.count_nonzero(truncated != levels[0]) == 33
+    assert truncated[25] == 24 and truncated[255] == 255 and truncated[0] == 0
+
+
+def test_score_maps_reproduces_official_values(shared_data, lpips_weights, official_uniform_metrics):
+    """Official map PNG levels of Uniform_A against Uniform_B: all 8 components."""
+    suffixes = {"Struct": "", "OAC": "_OAC", "SC": "_SC", "RSC": "_RSC"}
+
+    def levels(scan):
+        return {name: read_png_rgb(shared_data / "official" / f"Scan_{scan}{suffix}.png")[..., 0]
+                for name, suffix in suffixes.items()}
+
+    components = score_maps(levels("Exp1_Uniform_A"), levels("Exp1_Uniform_B"))
+    assert tuple(components) == COMPONENTS
+    for name in MAP_NAMES:
+        _assert_official(components, official_uniform_metrics, name)
+
+
+def test_score_reproduces_official_values(shared_data, lpips_weights, official_uniform_metrics):
+    """From the scans alone (maps computed by octcl.maps), all 8 components and their mean."""
+    official = shared_data / "official"
+    result = score(official / UNIFORM_A, official / UNIFORM_B)
+    assert tuple(result) == COMPONENTS + ("mean",)
+    for name in MAP_NAMES:
+        _assert_official(result, official_uniform_metrics, name)
+    assert result["mean"] == pytest.approx(np.mean([result[c] for c in COMPONENTS]), abs=1e-15)
+
+
+def test_score_directories_and_csv(shared_data, lpips_weights, official_uniform_metrics, tmp_path):
+    official = shared_data / "official"
+    ref_dir, pred_dir = tmp_path / "ref", tmp_path / "pred"
+    ref_dir.mkdir()
+    pred_dir.mkdir()
+    for name in (UNIFORM_A, LAYERS_A, "Scan_Exp1_Uniform_A_OAC.png", "Scan_Exp1_Uniform_A_SC.png",
+                 "Scan_Exp1_Uniform_A_RSC.png"):
+        shutil.copy(official / name, ref_dir / name)
+    shutil.copy(official / UNIFORM_B, pred_dir / UNIFORM_A)
+    shutil.copy(official / LAYERS_A, pred_dir / LAYERS_A)
+    calls = []
+
+    result = score_directories(ref_dir, pred_dir, progress=lambda *call: calls.append(call))
+
+    assert calls == [(1, 2, UNIFORM_A), (2, 2, LAYERS_A)]
+    assert sorted(result["scans"]) == [UNIFORM_A, LAYERS_A]
+    for name in MAP_NAMES:
+        _assert_official(result["scans"][UNIFORM_A], official_uniform_metrics, name)
+    identical = result["scans"][LAYERS_A]
+    assert all(identical[c] == pytest.approx(1.0, abs=1e-12) for c in COMPONENTS)
+    for component in COMPONENTS:
+        pair = [result["scans"][name][component] for name in (UNIFORM_A, LAYERS_A)]
+        assert result["medians"][component] == pytest.approx(np.mean(pair), abs=1e-15)
+    assert result["score"] == pytest.approx(np.mean(list(result["medians"].values())), abs=1e-15)
+
+    write_score_csv(result, tmp_path / "out" / "score.csv")
+    with open(tmp_path / "out" / "score.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [row["scan"] for row in rows] == [UNIFORM_A, LAYERS_A, "median"]
+    assert float(rows[0]["msssim_OAC"]) == result["scans"][UNIFORM_A]["msssim_OAC"]
+    assert float(rows[2]["mean"]) == result["score"]
+
+
+def test_score_directories_names_missing_predictions(shared_data, tmp_path):
+    ref_dir, pred_dir = tmp_path / "ref", tmp_path / "pred"
+    ref_dir.mkdir()
+    pred_dir.mkdir()
+    with pytest.raises(FileNotFoundError, match="no reference scans"):
+        score_directories(ref_dir, pred_dir)
+    shutil.copy(shared_data / "official" / UNIFORM_A, ref_dir / UNIFORM_A)
+    shutil.copy(shared_data / "official" / LAYERS_A, ref_dir / LAYERS_A)
+    shutil.copy(shared_data / "official" / LAYERS_A, pred_dir / LAYERS_A)
+    with pytest.raises(FileNotFoundError, match=f"no prediction for {UNIFORM_A}$"):
+        score_directories(ref_dir, pred_dir)
