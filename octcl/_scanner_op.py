@@ -154,8 +154,9 @@ class ScannerKernels:
         kept = np.flatnonzero((bin_index >= 0) & (bin_index < self.bins))
         # Depth rank with ties in input order (the scanner's stable sort), then
         # group by bin keeping that order: the kernel merges bins by rank.
-        by_depth = kept[np.argsort(z_um[kept], kind="stable")]
-        order = by_depth[np.argsort(bin_index[by_depth], kind="stable")]
+        by_depth = self._depth_order(kept, z_um)
+        # Bin numbers fit in int16, for which NumPy's stable sort is a radix sort.
+        order = by_depth[np.argsort(bin_index[by_depth].astype(np.int16), kind="stable")]
         rank = np.empty(len(x_um), dtype=np.int32)
         rank[by_depth] = np.arange(by_depth.size, dtype=np.int32)
         bins = bin_index[order].astype(np.int32)
@@ -169,6 +170,31 @@ class ScannerKernels:
         self._geometry += [self._upload(carrier.astype(self.complex)), self._upload(rank[order]),
                            self._upload(bins),
                            self._upload(np.searchsorted(bins, np.arange(self.bins + 1)).astype(np.int32))]
+
+    def _depth_order(self, kept: np.ndarray, z_um: np.ndarray) -> np.ndarray:
+        """Indices ``kept`` sorted by depth, ties in index order.
+
+        During refinement depths move little between calls, so the previous
+        order is tried first: a stable sort of nearly sorted data is close to
+        linear. Runs of exactly equal depths are then put back in index order.
+        """
+        previous, previous_kept = getattr(self, "_last_depth_order", None), getattr(self, "_last_kept", None)
+        reuse = previous is not None and previous_kept.size == kept.size and np.array_equal(previous_kept, kept)
+        start = previous if reuse else kept
+        self._last_kept = kept
+        by_depth = start[np.argsort(z_um[start], kind="stable")]
+        z_sorted = z_um[by_depth]
+        tied = np.zeros(z_sorted.size, dtype=bool)
+        equal_next = z_sorted[1:] == z_sorted[:-1]
+        tied[1:] |= equal_next
+        tied[:-1] |= equal_next
+        if start is not kept and tied.any():
+            positions = np.flatnonzero(tied)
+            # Sort the tied positions by (depth, index); depth is constant within a run.
+            key = np.lexsort((by_depth[positions], z_sorted[positions]))
+            by_depth[positions] = by_depth[positions][key]
+        self._last_depth_order = by_depth
+        return by_depth
 
     # ------------------------------------------------------------- kernels
     def forward(self, for_adjoint: bool = False) -> np.ndarray:

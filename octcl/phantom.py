@@ -225,6 +225,59 @@ class Phantom:
         return cls(*(_round_significant(c, 5) for c in (x, y, z, energy)))
 
 
+    @classmethod
+    def skin(cls, seed: int = 0, config: ScannerConfig = DEFAULT_CONFIG,
+             count: int = TARGET_ROWS) -> "Phantom":
+        """A skin-like test scene: layers, vessels, a cyst and shadowing reflectors.
+
+        Scatterers fill the tissue below an undulating surface
+        z_s(x) = 120 + 30·sin(2πx/1400 + φ1) + 10·sin(2πx/350 + φ2) µm:
+
+        - epidermis, 0–70 µm below the surface: E = 0.6 %;
+        - dermal–epidermal junction, 70–85 µm: E = 2.5 % (a bright band);
+        - dermis: E = 1.2 %·exp(−(z − z_s)/600 µm), plus a faint 10 % random texture;
+        - 3 vessels (ellipses, 60–140 µm across) and 1 cyst (a 220 µm disc):
+          E = 0.002 % inside (dark, with their own shadowless bottom edges);
+        - 6 small strong reflectors (E = 10 %) at the junction cast partial
+          shadows into the dermis below them.
+
+        ``seed`` draws the phases, vessel and reflector positions and the
+        scatterer cloud (|y| ≤ 3 µm, inside the contract ranges).
+        """
+        rng = np.random.default_rng(seed)
+        half_width, depth = config.xmax_um / 2, config.depth_range_um
+        phase1, phase2 = rng.uniform(0, 2 * np.pi, 2)
+
+        def surface(x):
+            return 120 + 30 * np.sin(2 * np.pi * x / 1400 + phase1) + 10 * np.sin(2 * np.pi * x / 350 + phase2)
+
+        reflectors = 6
+        bulk = count - reflectors * 40
+        x = rng.uniform(-half_width, half_width, bulk)
+        top = surface(x)
+        z = top + rng.uniform(0, 1, bulk) * (depth - top)
+        below = z - top
+        energy = np.where(below < 70, 0.6, np.where(below < 85, 2.5, 1.2 * np.exp(-below / 600)))
+        energy *= 1 + 0.1 * rng.standard_normal(bulk)
+        dark = np.zeros(bulk, dtype=bool)
+        for _ in range(3):
+            cx, cz = rng.uniform(-0.8, 0.8) * half_width, rng.uniform(350, 1100)
+            rx, rz = rng.uniform(30, 70), rng.uniform(30, 70)
+            dark |= ((x - cx) / rx) ** 2 + ((z - cz) / rz) ** 2 < 1
+        cx, cz = rng.uniform(-0.8, 0.8) * half_width, rng.uniform(500, 1200)
+        dark |= (x - cx) ** 2 + (z - cz) ** 2 < 110**2
+        energy[dark] = 0.002
+        # Strong reflectors: 40 scatterers each within a few µm, E = 10 %.
+        centres = rng.uniform(-0.9, 0.9, reflectors) * half_width
+        rx = np.repeat(centres, 40) + rng.uniform(-15, 15, reflectors * 40)
+        rz = surface(rx) + 78 + rng.uniform(-2, 2, reflectors * 40)
+        x = np.concatenate([x, rx])
+        z = np.concatenate([z, rz])
+        energy = np.concatenate([energy, np.full(reflectors * 40, 10.0)])
+        y = rng.uniform(-CONTRACT_Y_LIMIT_UM, CONTRACT_Y_LIMIT_UM, x.size)
+        return cls(np.clip(x, -half_width, half_width), y, np.clip(z, 0, depth), np.clip(energy, 0, 100))
+
+
 def _round_significant(values: np.ndarray, digits: int) -> np.ndarray:
     """Round to ``digits`` significant digits exactly as ``'%.{digits-1}e'`` prints."""
     fmt = f"%.{digits - 1}e"

@@ -1,0 +1,164 @@
+#!/usr/bin/env python
+"""Error against run time of the OpenCL scanner kernels.
+
+Sweeps the accuracy knobs (spreading width W, shadowing reach R², early stop
+τ, float32/float64) on the official 300k phantoms and a stiff set, and
+measures against the float64 NumPy reference:
+
+- identical 8-bit pixels (%) and the largest colour-index error,
+- MS-SSIM of the 8-bit images (the official implementation),
+- gradient relative error ‖g − g*‖/‖g*‖ of ∂L/∂z and ∂L/∂u for the smooth
+  loss L = ½·Σ(D − D_ref)²·w, against float64 kernels at W = 12, R² = 20
+  (those are checked against finite differences of the reference in
+  tests/test_scanner_kernels.py),
+- render time (layout + forward) and gradient time (forward + adjoint), the
+  median of ``--repeats`` runs, and the reference's render time in the same run;
+- peak resident memory of a fresh process rendering, then taking one gradient,
+  at the default settings.
+
+Writes ``--out``/kernels.csv and kernels.png (error against time).
+
+    python scripts/bench_kernels.py --out docs/bench
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from octcl import _reference as ref
+from octcl._msssim import msssim_exact
+from octcl._plot import line_chart
+from octcl._scanner_op import KernelSettings, ScannerKernels
+from octcl.phantom import Phantom
+from octcl.render import Rendering, display_vjp, render
+
+
+def scenes(quick: bool) -> dict[str, Phantom]:
+    rng = np.random.default_rng(0)
+    dense = 300_000
+    found = {
+        "uniform_A": Phantom.baseline("uniform", 42),
+        "layers_A": Phantom.baseline("layers", 42),
+        "skin_1": Phantom.skin(1),
+        "dense_window": Phantom(rng.uniform(-5, 5, dense), rng.uniform(-3, 3, dense),
+                                rng.uniform(0, 1536, dense), np.full(dense, 1e-3)),
+    }
+    return {k: found[k] for k in (("layers_A", "skin_1") if quick else found)}
+
+
+def sweep(quick: bool) -> list[KernelSettings]:
+    settings = [KernelSettings(spread_width=w) for w in ((4, 8) if quick else (4, 6, 8, 10))]
+    settings += [KernelSettings(shadow_radius_sq=r2) for r2 in ((4.0, 9.0) if quick else (3.0, 4.0, 6.0, 9.0))]
+    settings += [KernelSettings(min_transmission=t) for t in ((1e-3,) if quick else (1e-4, 1e-2))]
+    settings += [KernelSettings(double=True)]
+    return settings
+
+
+def timed(function, repeats: int):
+    times, result = [], None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = function()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times)), result
+
+
+def gradient(kernels: ScannerKernels, target: np.ndarray, weight: np.ndarray):
+    rendering = Rendering.from_a_scans(kernels.forward(for_adjoint=True))
+    return kernels.adjoint(display_vjp(rendering, weight * (rendering.display - target)))
+
+
+def measure_memory(scene: str) -> float:
+    """Peak RSS (MiB) of a fresh process: layout, render, one gradient, default settings."""
+    code = (
+        "import resource, numpy as np, sys; sys.argv=['x']\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from bench_kernels import scenes, gradient\n"
+        "from octcl._scanner_op import ScannerKernels\n"
+        f"p = scenes(False)[{scene!r}]\n"
+        "k = ScannerKernels(); k.set_phantom(p.x_um, p.y_um, p.z_um, np.log(p.energy_pct))\n"
+        "k.forward(); shape = (k.config.depth_pixels, k.config.a_scans)\n"
+        "gradient(k, np.zeros(shape), np.ones(shape))\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n")
+    output = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return float(output.stdout.split()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default="docs/bench", help="folder for kernels.csv, kernels.png")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="two scenes, fewer settings")
+    parser.add_argument("--device", help="OpenCL device (see `octcl devices`)")
+    args = parser.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name, phantom in scenes(args.quick).items():
+        log_energy = np.log(phantom.energy_pct)
+        start = time.perf_counter()
+        reference = render(phantom, backend="numpy")
+        reference_s = time.perf_counter() - start
+        rng = np.random.default_rng(1)
+        target, weight = reference.display, rng.uniform(0, 1, reference.display.shape)
+        best = ScannerKernels(settings=KernelSettings(spread_width=12, double=True), device=args.device)
+        best.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
+        target = np.clip(target + 0.05 * rng.standard_normal(target.shape), 0, 1)
+        grad_u_star, grad_z_star = gradient(best, target, weight)
+        print(f"{name}: reference {reference_s:.1f} s", flush=True)
+        for settings in sweep(args.quick):
+            kernels = ScannerKernels(settings=settings, device=args.device)
+
+            def render_once():
+                kernels.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
+                return Rendering.from_a_scans(kernels.forward())
+
+            render_s, rendering = timed(render_once, args.repeats)
+            gradient_s, (grad_u, grad_z) = timed(lambda: gradient(kernels, target, weight), args.repeats)
+            index_error = np.abs(ref.colour_index(rendering.display).astype(int) - ref.colour_index(reference.display))
+            row = {
+                "scene": name, "spread_width": settings.spread_width,
+                "shadow_radius_sq": settings.shadow_radius_sq, "min_transmission": settings.min_transmission,
+                "precision": "float64" if settings.double else "float32",
+                "identical_pct": 100 * float(np.mean(rendering.levels == reference.levels)),
+                "max_index_error": int(index_error.max()),
+                "msssim": msssim_exact(reference.levels, rendering.levels),
+                "grad_z_rel_error": float(np.linalg.norm(grad_z - grad_z_star) / np.linalg.norm(grad_z_star)),
+                "grad_u_rel_error": float(np.linalg.norm(grad_u - grad_u_star) / np.linalg.norm(grad_u_star)),
+                "render_s": render_s, "gradient_s": gradient_s, "reference_s": reference_s,
+                "speedup_vs_reference": reference_s / render_s, "gradient_over_render": gradient_s / render_s,
+            }
+            rows.append(row)
+            print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items()}), flush=True)
+    for name in scenes(args.quick):
+        peak = measure_memory(name)
+        print(f"{name}: peak RSS {peak:.0f} MiB (render + gradient, default settings)", flush=True)
+        for row in rows:
+            if row["scene"] == name:
+                row["peak_rss_mib_default"] = peak
+    with open(out / "kernels.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    series = {}
+    for row in rows:
+        series.setdefault(row["scene"], ([], []))
+        series[row["scene"]][0].append(row["render_s"])
+        series[row["scene"]][1].append(100 - row["identical_pct"])
+    line_chart(out / "kernels.png", {k: (np.array(x)[np.argsort(x)], np.array(y)[np.argsort(x)])
+                                     for k, (x, y) in series.items()},
+               "OpenCL scanner: error against render time (each point one knob setting)",
+               "render time, s", "% of 8-bit pixels differing from the float64 reference", markers=True)
+    print(f"wrote {out / 'kernels.csv'} and {out / 'kernels.png'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,60 @@
+"""Render the three official phantoms with the float64 reference scanner and
+compare the 8-bit pixels with the official SynthOCT scans.
+
+Usage::
+
+    python scripts/check_reference.py [--data DIR]
+
+DIR defaults to ``../shared/data`` beside the repository (the folder holding
+``official/``). Prints, per scan, the share of identical pixels, the histogram
+of level differences (ours − official) and the rendering time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from octcl._io import read_png_rgb
+from octcl._reference import render_reference
+from octcl.config import DEFAULT_CONFIG
+from octcl.phantom import Phantom
+
+SCANS = [
+    ("uniform", 42, "Scan_Exp1_Uniform_A.png"),
+    ("uniform", 101, "Scan_Exp1_Uniform_B.png"),
+    ("layers", 42, "Scan_Exp2_Layers_A.png"),
+]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path,
+                        default=Path(__file__).resolve().parents[1].parent / "shared" / "data")
+    args = parser.parse_args(argv)
+    official_dir = args.data / "official"
+    if not official_dir.is_dir():
+        print(f"error: {official_dir} is not a folder", file=sys.stderr)
+        return 2
+    worst = 100.0
+    for kind, seed, name in SCANS:
+        official = read_png_rgb(official_dir / name, shape=DEFAULT_CONFIG.shape)[:, :, 0]
+        start = time.perf_counter()
+        levels = render_reference(Phantom.baseline(kind, seed)).levels
+        seconds = time.perf_counter() - start
+        diff = levels.astype(int) - official.astype(int)
+        identical = 100.0 * np.mean(diff == 0)
+        worst = min(worst, identical)
+        values, counts = np.unique(diff, return_counts=True)
+        histogram = "  ".join(f"{v:+d}: {c}" for v, c in zip(values.tolist(), counts.tolist()))
+        print(f"{name:26s} Phantom.baseline({kind!r}, {seed:3d})  {identical:8.4f} % identical  "
+              f"max |diff| {np.abs(diff).max()}  [{histogram}]  {seconds:5.1f} s", flush=True)
+    return 0 if worst >= 99.9 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Set up .venv, then show octcl end to end in out/demo/:
+#  1. reproduce the official Layers scan: render the regenerated baseline phantom,
+#     make its maps, score it against the official scan (needs ../shared/data);
+#  2. invert a bundled example: render a skin-like phantom, invert that B-scan
+#     into a new phantom (time budget $DEMO_BUDGET s, default 120), render and score it.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup.sh >/dev/null
+octcl=.venv/bin/octcl
+out=out/demo
+mkdir -p "$out"
+official=../shared/data/official/Scan_Exp2_Layers_A.png
+
+if [ -f "$official" ]; then
+    echo "== 1. Official Layers scan reproduced by octcl"
+    $octcl phantom baseline --kind layers --seed 42 -o "$out/layers.txt"
+    $octcl render "$out/layers.txt" -o "$out/layers.png"
+    $octcl maps "$out/layers.png"
+    $octcl score "$official" "$out/layers.png"
+else
+    echo "== 1. skipped: $official not found"
+fi
+
+echo "== 2. Inverting a skin-like B-scan (budget ${DEMO_BUDGET:-120} s)"
+$octcl phantom skin --seed 7 -o "$out/skin.txt"
+$octcl render "$out/skin.txt" -o "$out/skin.png"
+$octcl invert "$out/skin.png" -o "$out/skin_inverted.txt" --time-budget "${DEMO_BUDGET:-120}" \
+    --report "$out/skin_invert_report.json" >/dev/null
+$octcl render "$out/skin_inverted.txt" -o "$out/skin_inverted.png"
+$octcl score "$out/skin.png" "$out/skin_inverted.png"
+echo "Outputs in $out/"

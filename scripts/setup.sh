@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Create .venv with octcl and everything it needs (CPU-only torch, PoCL from PyPI),
+# fetch the LPIPS weights once, and check that an OpenCL device is found.
+# Idempotent: a second run only checks.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYTHON=${PYTHON:-python3}
+VENV=${OCTCL_VENV:-.venv}
+
+if [ ! -x "$VENV/bin/python" ]; then
+    "$PYTHON" -m venv "$VENV"
+fi
+pip() { "$VENV/bin/python" -m pip --disable-pip-version-check -q "$@"; }
+
+if ! "$VENV/bin/python" -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '2.13.0')" 2>/dev/null; then
+    # torch 2.13.0, CPU build only: a local wheel if the machine has one, else PyTorch's CPU index.
+    wheel=$(ls "${PIP_FIND_LINKS:-/opt/wheels}"/torch-2.13.0+cpu-*.whl 2>/dev/null | head -n 1 || true)
+    if [ -n "$wheel" ]; then
+        pip install "$wheel"
+    else
+        pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
+    fi
+fi
+pip install -e ".[test]"
+"$VENV/bin/octcl" weights check >/dev/null 2>&1 || "$VENV/bin/octcl" weights fetch
+"$VENV/bin/octcl" devices
