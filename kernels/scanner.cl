@@ -9,7 +9,10 @@
  *      the host; a three-way merge by rank gives the A-scan's depth order.
  *   2. For a candidate m within the shadowing reach, d² = (x_i − x_m)² + y_m²
  *      < R²·w0², the beam amplitude is b_m = exp(−d²/w0²)·a_m. If it also lies
- *      in the contribution window (d² < 3·w0²) it adds c_m = T·b_m·e^{iφ_m}
+ *      in the contribution window (d² < 3·w0², decided on the host in float64
+ *      and passed as the A-scan range [first, last], so that float32 rounding
+ *      never flips a scatterer at the window's edge in or out) it adds
+ *      c_m = T·b_m·e^{iφ_m}
  *      (φ_m = −2·k0·z_m mod 2π, from the host in float64) to the A-scan.
  *      Then T ← T·(1 − min(b_m², 1)): the depth-cumulative shadowing.
  *   3. The spectrum S(s) = Σ_m c_m·e^{−i·s·x_m}, x_m = 2·δk·z_m, is a type-1
@@ -33,6 +36,10 @@
  *   suffix sum while the candidates are visited in reverse depth order:
  *   D ← R_m·b_m + (1 − t_m)·D. Nothing is divided by (1 − t), so a mirror
  *   (t = 1) gives finite, exact gradients. T_m comes from the forward pass.
+ *
+ * Lateral positions are offsets from the first A-scan of the scatterer's bin
+ * (x_m − x_{P·(c−1)} ∈ [0, P·Δx)), so that x_i − x_m = (i − P·(c−1))·Δx −
+ * offset_m keeps float32 accuracy far from the centre of the scan.
  *
  * Every (A-scan, scatterer) pair has its own slot, so no atomics are needed:
  * scatterer m in bin c serves A-scans P·(c − 2) … P·(c + 1) − 1, slot
@@ -71,10 +78,8 @@ typedef struct {
     int ascans_per_bin;   /* P: a bin is P A-scans wide, P·Δx ≥ shadowing reach */
     int bins;             /* number of lateral bins */
     int slots;            /* 3·P slots per scatterer */
-    real x0_um;           /* lateral position of A-scan 0 */
     real pitch_um;        /* Δx between A-scans */
     real inv_w0_sq;       /* 1/w0², µm⁻² */
-    real contribution_d2; /* 3·w0², µm² */
     real shadow_d2;       /* R²·w0², µm² */
     real es_beta;         /* β of the spreading kernel */
     real k0;              /* 2π/λ, rad/µm */
@@ -176,16 +181,16 @@ inline void candidate_bins(const ScannerParams p, int ascan, __global const int 
  * and the merge cursors where the A-scan stopped go to stop_cursor.
  */
 __kernel void render_forward(const ScannerParams p,
-                             __global const real *x_um, __global const real *y_um,
+                             __global const real *x_offset_um, __global const real *y_um,
                              __global const real *amplitude, __global const real *grid_pos,
                              __global const complex_t *carrier, __global const int *rank,
                              __global const int *bin, __global const int *bin_start,
+                             __global const int2 *contributes_to,
                              __global const real *transfer, __global const complex_t *twiddle,
                              __global complex_t *a_scan,
                              __global complex_t *slot_data, __global int *stop_cursor) {
     const int i = get_global_id(0);
     if (i >= p.a_scans) return;
-    const real x_i = p.x0_um + i * p.pitch_um;
     int begin[3], end[3], cursor[3];
     candidate_bins(p, i, bin_start, begin, end);
     for (int b = 0; b < 3; ++b) cursor[b] = begin[b];
@@ -196,12 +201,12 @@ __kernel void render_forward(const ScannerParams p,
     real transmission = 1, transmission_lo = 0;
     int m;
     while (transmission > p.min_transmission && (m = next_deeper(cursor, end, rank)) >= 0) {
-        const real dx = x_i - x_um[m];
+        const real dx = (i - p.ascans_per_bin * (bin[m] - 1)) * p.pitch_um - x_offset_um[m];
         const real d2 = dx * dx + y_um[m] * y_um[m];
         if (d2 >= p.shadow_d2) continue;
         const real beam_amplitude = exp(-d2 * p.inv_w0_sq) * amplitude[m];
         if (slot_data) slot_data[(size_t)m * p.slots + i - p.ascans_per_bin * (bin[m] - 2)].x = transmission;
-        if (d2 < p.contribution_d2) {
+        if (i >= contributes_to[m].x && i <= contributes_to[m].y) {
             const complex_t c = (transmission * beam_amplitude) * carrier[m];
             int first;
             const taps_t w = spread_weights(grid_pos[m], p.es_beta, &first);
@@ -227,16 +232,16 @@ __kernel void render_forward(const ScannerParams p,
  * pair's slot with (∂L/∂u, ∂L/∂z) of that A-scan. Unvisited slots must hold 0.
  */
 __kernel void render_adjoint(const ScannerParams p,
-                             __global const real *x_um, __global const real *y_um,
+                             __global const real *x_offset_um, __global const real *y_um,
                              __global const real *amplitude, __global const real *grid_pos,
                              __global const complex_t *carrier, __global const int *rank,
                              __global const int *bin, __global const int *bin_start,
+                             __global const int2 *contributes_to,
                              __global const real *transfer, __global const complex_t *twiddle,
                              __global const complex_t *a_scan_bar,
                              __global complex_t *slot_data, __global const int *stop_cursor) {
     const int i = get_global_id(0);
     if (i >= p.a_scans) return;
-    const real x_i = p.x0_um + i * p.pitch_um;
     int begin[3], end[3], cursor[3];
     candidate_bins(p, i, bin_start, begin, end);
     for (int b = 0; b < 3; ++b) cursor[b] = stop_cursor[3 * i + b];
@@ -262,7 +267,7 @@ __kernel void render_adjoint(const ScannerParams p,
     real downstream = 0; /* D: sensitivity to the transmission just below the visited scatterer */
     int m;
     while ((m = next_shallower(cursor, begin, rank)) >= 0) {
-        const real dx = x_i - x_um[m];
+        const real dx = (i - p.ascans_per_bin * (bin[m] - 1)) * p.pitch_um - x_offset_um[m];
         const real d2 = dx * dx + y_um[m] * y_um[m];
         if (d2 >= p.shadow_d2) continue;
         const real beam_amplitude = exp(-d2 * p.inv_w0_sq) * amplitude[m];
@@ -270,7 +275,7 @@ __kernel void render_adjoint(const ScannerParams p,
         __global complex_t *slot = slot_data + (size_t)m * p.slots + i - p.ascans_per_bin * (bin[m] - 2);
         const real transmission = slot->x;
         real grad_u = 0, grad_z = 0, grad_transmission = 0;
-        if (d2 < p.contribution_d2) {
+        if (i >= contributes_to[m].x && i <= contributes_to[m].y) {
             int first;
             const taps_t w = spread_weights(grid_pos[m], p.es_beta, &first);
             const real *wv = (const real *)&w;

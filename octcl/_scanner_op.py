@@ -118,15 +118,13 @@ class ScannerKernels:
         self._params_dtype = np.dtype(
             [("a_scans", "i4"), ("ascans_per_bin", "i4"), ("bins", "i4"), ("slots", "i4")]
             + [(name, real_name) for name in (
-                "x0_um", "pitch_um", "inv_w0_sq", "contribution_d2", "shadow_d2", "es_beta",
+                "pitch_um", "inv_w0_sq", "shadow_d2", "es_beta",
                 "k0", "dk", "min_transmission")])
         params = np.zeros((), self._params_dtype)
         params["a_scans"], params["ascans_per_bin"] = config.a_scans, self.ascans_per_bin
         params["bins"], params["slots"] = self.bins, 3 * self.ascans_per_bin
-        params["x0_um"] = ref.ascan_positions_um(config)[0]
         params["pitch_um"] = config.lateral_pitch_um
         params["inv_w0_sq"] = 1 / w0**2
-        params["contribution_d2"] = ref.CONTRIBUTION_RADIUS_SQ * w0**2
         params["shadow_d2"] = settings.shadow_radius_sq * w0**2
         params["es_beta"], params["k0"], params["dk"] = settings.es_beta, self.k0, self.dk
         params["min_transmission"] = settings.min_transmission
@@ -166,10 +164,33 @@ class ScannerKernels:
         grid_pos = np.mod(span * (self.grid / (2 * np.pi)), self.grid)
         carrier = np.exp(-2j * self.k0 * z_um[order])       # e^{iφ}, φ = −2·k0·z
         amplitude = np.exp(0.5 * log_energy[order]) / 10.0  # sqrt(E/100)
-        self._geometry = [self._upload(a.astype(self.real)) for a in (x_um[order], y_um[order], amplitude, grid_pos)]
+        ascan_x_um = ref.ascan_positions_um(config)
+        x_offset_um = x_um[order] - (ascan_x_um[0] + per_bin * (bins - 1) * config.lateral_pitch_um)
+        self._geometry = [self._upload(a.astype(self.real)) for a in (x_offset_um, y_um[order], amplitude, grid_pos)]
         self._geometry += [self._upload(carrier.astype(self.complex)), self._upload(rank[order]),
                            self._upload(bins),
-                           self._upload(np.searchsorted(bins, np.arange(self.bins + 1)).astype(np.int32))]
+                           self._upload(np.searchsorted(bins, np.arange(self.bins + 1)).astype(np.int32)),
+                           self._upload(self._contribution_ranges(x_um[order], y_um[order], lateral_index[order]))]
+
+    def _contribution_ranges(self, x_um, y_um, lateral_index) -> np.ndarray:
+        """(first, last) A-scan whose contribution window holds each scatterer.
+
+        Decided in float64 with the reference's own test,
+        (x_i − x_j)² + y_j² < 3·w0², so the kernels' float32 arithmetic never
+        moves a scatterer at the window's edge in or out. The window is an
+        interval of A-scans (d² is convex in i); an empty one is (1, 0).
+        """
+        config = self.config
+        reach = math.ceil(math.sqrt(ref.CONTRIBUTION_RADIUS_SQ) * config.beam_radius_um
+                          / config.lateral_pitch_um) + 1
+        candidates = np.rint(lateral_index)[:, None].astype(np.int64) + np.arange(-reach, reach + 1)
+        ascan_x_um = ref.ascan_positions_um(config)
+        inside = (candidates >= 0) & (candidates < config.a_scans)
+        inside &= ref.in_contribution_window(ascan_x_um[np.clip(candidates, 0, config.a_scans - 1)]
+                                             - x_um[:, None], y_um[:, None], config.beam_radius_um)
+        first = np.where(inside.any(axis=1), np.where(inside, candidates, np.iinfo(np.int64).max).min(axis=1), 1)
+        last = np.where(inside.any(axis=1), np.where(inside, candidates, -1).max(axis=1), 0)
+        return np.stack([first, last], axis=1).astype(np.int32)
 
     def _depth_order(self, kept: np.ndarray, z_um: np.ndarray) -> np.ndarray:
         """Indices ``kept`` sorted by depth, ties in index order.

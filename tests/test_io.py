@@ -1,0 +1,110 @@
+"""PNG reading and writing: strict checks with messages that name the file and the problem."""
+
+import os
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from octcl._io import GREY_LUT, ImageFormatError, atomic_write, read_png_rgb, read_scan, write_grey_png
+
+SHAPE = (256, 512)
+
+
+def save(path, array, mode=None, **kwargs):
+    image = Image.fromarray(array) if mode is None else Image.fromarray(array).convert(mode)
+    image.save(path, **kwargs)
+    return path
+
+
+def test_grey_rgba_round_trip(tmp_path):
+    levels = np.random.default_rng(0).integers(0, 256, SHAPE, dtype=np.uint8)
+    write_grey_png(tmp_path / "scan.png", levels)
+    with Image.open(tmp_path / "scan.png") as image:
+        assert image.mode == "RGBA"
+        rgba = np.asarray(image)
+    np.testing.assert_array_equal(rgba[..., :3], np.repeat(levels[..., None], 3, axis=2))
+    assert (rgba[..., 3] == 255).all()
+    scan = read_scan(tmp_path / "scan.png", SHAPE)
+    assert scan.dtype == np.float32
+    np.testing.assert_array_equal(np.rint(scan * 255), levels)
+
+
+@pytest.mark.parametrize("mode", ["L", "LA", "RGB", "RGBA"])
+def test_every_8bit_colour_type_reads(tmp_path, mode):
+    levels = np.arange(256 * 512, dtype=np.uint32).reshape(SHAPE).astype(np.uint8)
+    path = save(tmp_path / f"{mode}.png", levels, mode)
+    np.testing.assert_array_equal(read_png_rgb(path, SHAPE)[..., 0], levels)
+
+
+def test_read_scan_averages_the_colour_channels(tmp_path):
+    rgb = np.zeros(SHAPE + (3,), dtype=np.uint8)
+    rgb[..., 0], rgb[..., 1], rgb[..., 2] = 30, 60, 90
+    scan = read_scan(save(tmp_path / "colour.png", rgb), SHAPE)
+    assert scan.dtype == np.float32
+    np.testing.assert_allclose(scan, 60 / 255, rtol=1e-6)
+
+
+def test_wrong_size_names_file_and_sizes(tmp_path):
+    path = save(tmp_path / "small.png", np.zeros((200, 512), np.uint8))
+    with pytest.raises(ImageFormatError, match=r"small\.png: image is 200x512 .* expected 256x512"):
+        read_scan(path, SHAPE)
+
+
+def test_sixteen_bit_is_refused(tmp_path):
+    path = tmp_path / "deep.png"
+    Image.fromarray(np.zeros(SHAPE, np.uint16) + 1000).save(path)
+    with pytest.raises(ImageFormatError, match=r"deep\.png: 16-bit grey PNG; octcl reads 8-bit"):
+        read_scan(path, SHAPE)
+
+
+def test_palette_is_refused(tmp_path):
+    path = save(tmp_path / "palette.png", np.zeros(SHAPE, np.uint8), "P")
+    with pytest.raises(ImageFormatError, match=r"palette\.png: palette PNG"):
+        read_scan(path, SHAPE)
+
+
+def test_truncated_png_is_refused(tmp_path):
+    whole = save(tmp_path / "whole.png", np.random.default_rng(1).integers(0, 256, SHAPE, dtype=np.uint8))
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.png"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ImageFormatError, match=r"cut\.png: truncated or corrupt PNG"):
+        read_scan(cut, SHAPE)
+    header_only = tmp_path / "header.png"
+    header_only.write_bytes(data[:20])
+    with pytest.raises(ImageFormatError, match=r"header\.png: truncated PNG"):
+        read_scan(header_only, SHAPE)
+
+
+def test_not_a_png_is_refused(tmp_path):
+    path = tmp_path / "notes.png"
+    path.write_text("x y z E\n")
+    with pytest.raises(ImageFormatError, match=r"notes\.png: not a PNG file"):
+        read_scan(path)
+    jpeg = tmp_path / "photo.png"
+    Image.fromarray(np.zeros(SHAPE, np.uint8)).save(jpeg, format="JPEG")
+    with pytest.raises(ImageFormatError, match="not a PNG"):
+        read_scan(jpeg)
+    with pytest.raises(ImageFormatError, match="no such file"):
+        read_scan(tmp_path / "missing.png")
+
+
+def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
+    path = tmp_path / "out.txt"
+    path.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_write(path, "w") as handle:
+            handle.write("new, half written")
+            raise RuntimeError("disk full")
+    assert path.read_text() == "old"
+    assert os.listdir(tmp_path) == ["out.txt"]
+
+
+def test_grey_lut_matches_matplotlib_gray_bytes():
+    """uint8(255·lut) with lut[i] = (255·i/255)/255: the 24 indices that truncate."""
+    index = np.arange(256)
+    expected = ((255 * np.linspace(0, 1, 256))[1:-1] / 255 * 255).astype(np.uint8)
+    np.testing.assert_array_equal(GREY_LUT[1:-1], expected)
+    lowered = index[GREY_LUT != index]
+    assert lowered.size == 24 and lowered[0] == 33 and lowered[-1] == 244
