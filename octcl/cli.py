@@ -69,7 +69,7 @@ def _cmd_maps(args) -> int:
 
 
 def _format_table(result: dict) -> str:
-    from .score import MAP_NAMES
+    from .scorer import MAP_NAMES
 
     lines = [f"{'map':<8}{'MS-SSIM':>10}{'1-LPIPS':>10}"]
     for name in MAP_NAMES:
@@ -78,7 +78,7 @@ def _format_table(result: dict) -> str:
 
 
 def _cmd_score(args) -> int:
-    from .score import score, score_directories, write_score_csv
+    from .scorer import score, score_directories, write_score_csv
 
     if args.refs or args.preds:
         if not (args.refs and args.preds) or args.ref or args.pred:

@@ -39,7 +39,7 @@ def official_uniform_metrics(shared_data) -> dict:
 @pytest.fixture(scope="session")
 def official_uniform_maps(shared_data) -> tuple[dict, dict]:
     """The official Struct/OAC/SC/RSC map PNGs of Uniform_A and Uniform_B as the metric reads them."""
-    from octcl.score import _read_map_for_metrics
+    from octcl.scorer import _read_map_for_metrics
 
     def maps(scan):
         suffixes = {"Struct": "", "OAC": "_OAC", "SC": "_SC", "RSC": "_RSC"}

@@ -20,7 +20,7 @@ from octcl._lpips import (
     lpips_distance,
     lpips_network,
 )
-from octcl.score import MAP_NAMES
+from octcl.scorer import MAP_NAMES
 
 
 class _RunsShellCommand:

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from octcl._msssim import _gaussian_window, _ssim_and_cs, msssim_exact, msssim_torch
-from octcl.score import MAP_NAMES, _msssim_input
+from octcl.scorer import MAP_NAMES, _msssim_input
 
 # Both twins compute the same float64 maths; they differ only in the order of
 # the rounding steps (separable versus 2-D window, torch versus scipy sums),

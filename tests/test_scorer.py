@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from octcl._io import read_png_rgb, write_grey_png
-from octcl.score import (
+from octcl.scorer import (
     COMPONENTS,
     MAP_NAMES,
     _levels_for_metrics,
