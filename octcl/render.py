@@ -54,8 +54,16 @@ class Rendering:
         return cls(a_scans=a_scans, magnitude=magnitude, display=display, levels=ref.quantise(display))
 
 
-def display_vjp(rendering: Rendering, grad_display: np.ndarray) -> np.ndarray:
+#: Straight-through slope of the 8-bit image Q = level/255 ≈ floor(256·D)/255 w.r.t. D.
+STRAIGHT_THROUGH_SLOPE = 256.0 / 255.0
+
+
+def display_vjp(rendering: Rendering, grad_display: np.ndarray, through_levels: bool = False) -> np.ndarray:
     """Pull ∂L/∂D back to Ā = ∂L/∂Re A + i·∂L/∂Im A.
+
+    With ``through_levels`` the incoming gradient is ∂L/∂Q for the 8-bit
+    image Q = level/255 the scorer sees; quantisation is passed straight
+    through with the slope of its linear part, ∂Q/∂D := 256/255.
 
     For a pixel above the floor, D = 1 + DISPLAY_SLOPE·(ln|A| − ln max|A|), so
 
@@ -66,7 +74,8 @@ def display_vjp(rendering: Rendering, grad_display: np.ndarray) -> np.ndarray:
     """
     magnitude = rendering.magnitude
     unclipped = (rendering.display > 0) & (np.abs(rendering.a_scans) > 0)
-    grad = np.where(unclipped, grad_display, 0.0) * DISPLAY_SLOPE
+    slope = DISPLAY_SLOPE * (STRAIGHT_THROUGH_SLOPE if through_levels else 1.0)
+    grad = np.where(unclipped, grad_display, 0.0) * slope
     grad_magnitude = grad / magnitude
     brightest = np.unravel_index(np.argmax(magnitude), magnitude.shape)
     grad_magnitude[brightest] -= grad.sum() / magnitude[brightest]
