@@ -174,6 +174,27 @@ inline void candidate_bins(const ScannerParams p, int ascan, __global const int 
     }
 }
 
+/* The scene as the host laid it out (scatterers bin-major, depth-rank-minor)
+ * and the constant tables; shared by the forward and adjoint kernels. */
+#define SCENE_ARGUMENTS                                                             \
+    __global const real *x_offset_um, __global const real *y_um,                  \
+    __global const real *amplitude, __global const real *grid_pos,                \
+    __global const complex_t *carrier, __global const int *rank,                  \
+    __global const int *bin, __global const int *bin_start,                       \
+    __global const int2 *contributes_to,                                          \
+    __global const real *transfer, __global const complex_t *twiddle
+
+/* d² = (x_i − x_m)² + y_m² of A-scan i and scatterer m, from m's bin offset. */
+inline real squared_distance(const ScannerParams p, int i, int bin_m, real x_offset, real y) {
+    const real dx = (i - p.ascans_per_bin * (bin_m - 1)) * p.pitch_um - x_offset;
+    return dx * dx + y * y;
+}
+
+/* The (A-scan i, scatterer m) pair's own slot (see the header). */
+inline size_t slot_index(const ScannerParams p, int i, int m, int bin_m) {
+    return (size_t)m * p.slots + i - p.ascans_per_bin * (bin_m - 2);
+}
+
 /*
  * Forward: complex A-scans a_scan[i·NZ + n].
  * Scatterer arrays are in bin-major, depth-rank-minor order (host sorted).
@@ -181,12 +202,7 @@ inline void candidate_bins(const ScannerParams p, int ascan, __global const int 
  * and the merge cursors where the A-scan stopped go to stop_cursor.
  */
 __kernel void render_forward(const ScannerParams p,
-                             __global const real *x_offset_um, __global const real *y_um,
-                             __global const real *amplitude, __global const real *grid_pos,
-                             __global const complex_t *carrier, __global const int *rank,
-                             __global const int *bin, __global const int *bin_start,
-                             __global const int2 *contributes_to,
-                             __global const real *transfer, __global const complex_t *twiddle,
+                             SCENE_ARGUMENTS,
                              __global complex_t *a_scan,
                              __global complex_t *slot_data, __global int *stop_cursor) {
     const int i = get_global_id(0);
@@ -201,11 +217,10 @@ __kernel void render_forward(const ScannerParams p,
     real transmission = 1, transmission_lo = 0;
     int m;
     while (transmission > p.min_transmission && (m = next_deeper(cursor, end, rank)) >= 0) {
-        const real dx = (i - p.ascans_per_bin * (bin[m] - 1)) * p.pitch_um - x_offset_um[m];
-        const real d2 = dx * dx + y_um[m] * y_um[m];
+        const real d2 = squared_distance(p, i, bin[m], x_offset_um[m], y_um[m]);
         if (d2 >= p.shadow_d2) continue;
         const real beam_amplitude = exp(-d2 * p.inv_w0_sq) * amplitude[m];
-        if (slot_data) slot_data[(size_t)m * p.slots + i - p.ascans_per_bin * (bin[m] - 2)].x = transmission;
+        if (slot_data) slot_data[slot_index(p, i, m, bin[m])].x = transmission;
         if (i >= contributes_to[m].x && i <= contributes_to[m].y) {
             const complex_t c = (transmission * beam_amplitude) * carrier[m];
             int first;
@@ -232,12 +247,7 @@ __kernel void render_forward(const ScannerParams p,
  * pair's slot with (∂L/∂u, ∂L/∂z) of that A-scan. Unvisited slots must hold 0.
  */
 __kernel void render_adjoint(const ScannerParams p,
-                             __global const real *x_offset_um, __global const real *y_um,
-                             __global const real *amplitude, __global const real *grid_pos,
-                             __global const complex_t *carrier, __global const int *rank,
-                             __global const int *bin, __global const int *bin_start,
-                             __global const int2 *contributes_to,
-                             __global const real *transfer, __global const complex_t *twiddle,
+                             SCENE_ARGUMENTS,
                              __global const complex_t *a_scan_bar,
                              __global complex_t *slot_data, __global const int *stop_cursor) {
     const int i = get_global_id(0);
@@ -267,12 +277,11 @@ __kernel void render_adjoint(const ScannerParams p,
     real downstream = 0; /* D: sensitivity to the transmission just below the visited scatterer */
     int m;
     while ((m = next_shallower(cursor, begin, rank)) >= 0) {
-        const real dx = (i - p.ascans_per_bin * (bin[m] - 1)) * p.pitch_um - x_offset_um[m];
-        const real d2 = dx * dx + y_um[m] * y_um[m];
+        const real d2 = squared_distance(p, i, bin[m], x_offset_um[m], y_um[m]);
         if (d2 >= p.shadow_d2) continue;
         const real beam_amplitude = exp(-d2 * p.inv_w0_sq) * amplitude[m];
         const real beam_energy = beam_amplitude * beam_amplitude;
-        __global complex_t *slot = slot_data + (size_t)m * p.slots + i - p.ascans_per_bin * (bin[m] - 2);
+        __global complex_t *slot = slot_data + slot_index(p, i, m, bin[m]);
         const real transmission = slot->x;
         real grad_u = 0, grad_z = 0, grad_transmission = 0;
         if (i >= contributes_to[m].x && i <= contributes_to[m].y) {
