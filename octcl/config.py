@@ -97,6 +97,10 @@ class ScannerConfig:
                 parser.read_file(handle)
         except FileNotFoundError:
             raise ConfigError(f"{path}: no such file") from None
+        except IsADirectoryError:
+            raise ConfigError(f"{path}: is a directory, not a Configuration.ini file") from None
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from None
         except configparser.Error as exc:
             raise ConfigError(f"{path}: not a valid INI file ({exc.message.splitlines()[0]})") from None
         if not parser.has_section("Parameters"):
@@ -109,9 +113,15 @@ class ScannerConfig:
             text = section[key]
             kind = int if name in ("depth_pixels", "a_scans", "max_scatterers") else float
             try:
-                values[name] = kind(float(text)) if kind is int and float(text).is_integer() else kind(text)
+                number = float(text)
             except ValueError:
                 raise ConfigError(f"{path}: [Parameters] {key} = {text!r} is not a number") from None
+            if kind is int:
+                if not number.is_integer():
+                    raise ConfigError(
+                        f"{path}: [Parameters] {key} = {text!r} is not a whole number") from None
+                number = int(number)
+            values[name] = number
         for key, required in (("number of b-scans", 1.0), ("ymax mcm", 0.0)):
             if key in section:
                 try:
@@ -126,6 +136,11 @@ class ScannerConfig:
         try:
             return cls(**values)
         except ConfigError as exc:
+            # Name the INI key (and its text) behind the field the check refused.
+            for key, name in cls._INI_KEYS.items():
+                if str(exc).startswith(name + " ") and key in section:
+                    raise ConfigError(
+                        f"{path}: [Parameters] {key} = {section[key]!r}: {exc}") from None
             raise ConfigError(f"{path}: {exc}") from None
 
 
