@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._depth_order import depth_order as classic_depth_order
 from ._io import GREY_LUT
 from .config import DEFAULT_CONFIG, ScannerConfig
 from .phantom import Phantom
@@ -59,8 +60,14 @@ def in_contribution_window(dx_um: np.ndarray, y_um: np.ndarray, beam_radius_um: 
 
 
 def depth_order(z_um: np.ndarray) -> np.ndarray:
-    """Step 4: indices sorting scatterers by depth, ties kept in file order."""
-    return np.argsort(z_um, kind="stable")
+    """Step 4: indices sorting scatterers by depth, as the scanner's ``np.argsort`` does.
+
+    That is NumPy's classic introsort, which is not stable: the order it gives
+    equal depths decides which tied scatterer shadows which, and with it the
+    reference reproduces both official Uniform scans pixel for pixel
+    (docs/scanner.md). The pure-Python path keeps this module free of OpenCL.
+    """
+    return classic_depth_order(z_um, backend="python")
 
 
 def shadow_transmission(beam_amplitude: np.ndarray) -> np.ndarray:

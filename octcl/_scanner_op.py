@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _reference as ref
+from ._depth_order import depth_order
 from ._runtime import build, context_for, select_device
 from .config import DEFAULT_CONFIG, ScannerConfig
 
@@ -149,10 +150,12 @@ class ScannerKernels:
         x_um, y_um, z_um, log_energy = (np.asarray(v, dtype=np.float64) for v in (x_um, y_um, z_um, log_energy))
         lateral_index = x_um / config.lateral_pitch_um + config.a_scans / 2
         bin_index = np.floor(lateral_index / per_bin).astype(np.int64) + 1
-        kept = np.flatnonzero((bin_index >= 0) & (bin_index < self.bins))
-        # Depth rank with ties in input order (the scanner's stable sort), then
-        # group by bin keeping that order: the kernel merges bins by rank.
-        by_depth = self._depth_order(kept, z_um)
+        in_bins = (bin_index >= 0) & (bin_index < self.bins)
+        # Depth rank in the scanner's order, then group by bin keeping that
+        # order: the kernel merges bins by rank. The order of tied depths
+        # depends on every depth, so all scatterers are sorted, then filtered.
+        by_depth = self._depth_order(z_um)
+        by_depth = by_depth[in_bins[by_depth]]
         # Bin numbers fit in int16, for which NumPy's stable sort is a radix sort.
         order = by_depth[np.argsort(bin_index[by_depth].astype(np.int16), kind="stable")]
         rank = np.empty(len(x_um), dtype=np.int32)
@@ -192,30 +195,18 @@ class ScannerKernels:
         last = np.where(inside.any(axis=1), np.where(inside, candidates, -1).max(axis=1), 0)
         return np.stack([first, last], axis=1).astype(np.int32)
 
-    def _depth_order(self, kept: np.ndarray, z_um: np.ndarray) -> np.ndarray:
-        """Indices ``kept`` sorted by depth, ties in index order.
+    def _depth_order(self, z_um: np.ndarray) -> np.ndarray:
+        """All scatterers in the scanner's depth order, NumPy's classic argsort.
 
-        During refinement depths move little between calls, so the previous
-        order is tried first: a stable sort of nearly sorted data is close to
-        linear. Runs of exactly equal depths are then put back in index order.
+        See :func:`octcl._depth_order.depth_order`, run on this device. During
+        refinement depths move little between calls and have no ties, so the
+        previous order is passed as the guess: the sort that looks for ties
+        is then close to linear, and with none found it is the answer.
         """
-        previous, previous_kept = getattr(self, "_last_depth_order", None), getattr(self, "_last_kept", None)
-        reuse = previous is not None and previous_kept.size == kept.size and np.array_equal(previous_kept, kept)
-        start = previous if reuse else kept
-        self._last_kept = kept
-        by_depth = start[np.argsort(z_um[start], kind="stable")]
-        z_sorted = z_um[by_depth]
-        tied = np.zeros(z_sorted.size, dtype=bool)
-        equal_next = z_sorted[1:] == z_sorted[:-1]
-        tied[1:] |= equal_next
-        tied[:-1] |= equal_next
-        if start is not kept and tied.any():
-            positions = np.flatnonzero(tied)
-            # Sort the tied positions by (depth, index); depth is constant within a run.
-            key = np.lexsort((by_depth[positions], z_sorted[positions]))
-            by_depth[positions] = by_depth[positions][key]
-        self._last_depth_order = by_depth
-        return by_depth
+        previous = getattr(self, "_last_depth_order", None)
+        guess = previous if previous is not None and previous.size == z_um.size else None
+        self._last_depth_order = depth_order(z_um, backend="opencl", device=self.device, guess=guess)
+        return self._last_depth_order
 
     # ------------------------------------------------------------- kernels
     def forward(self, for_adjoint: bool = False) -> np.ndarray:

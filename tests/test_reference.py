@@ -68,11 +68,15 @@ def test_contribution_window_edge_is_strict():
 
 
 # ------------------------------------------------------------------ step 4
-def test_depth_order_keeps_ties_in_file_order():
+def test_depth_order_is_numpy_classic_argsort():
+    # Up to 16 depths the classic argsort is an insertion sort: ties in file order.
     np.testing.assert_array_equal(R.depth_order(np.array([5.0, 1.0, 5.0, 1.0, 3.0, 5.0])),
                                   [1, 3, 4, 0, 2, 5])
+    # Beyond, the introsort is not stable (tests/test_depth_order.py checks its order).
     z = np.random.default_rng(1).integers(0, 20, 5000).astype(float)
-    np.testing.assert_array_equal(R.depth_order(z), np.lexsort((np.arange(z.size), z)))
+    order = R.depth_order(z)
+    assert np.all(np.diff(z[order]) >= 0)
+    assert not np.array_equal(order, np.lexsort((np.arange(z.size), z)))
 
 
 def test_shadow_transmission_is_an_exclusive_product():
@@ -242,7 +246,7 @@ def dense_phantom(seed=3, count=3000, mirror=True):
 def brute_force_spectra(phantom, config, shadowing=True):
     """Steps 1–6 with shadowing from every scatterer of the phantom, nothing left out."""
     w0 = config.beam_radius_um
-    order = np.argsort(phantom.z_um, kind="stable")
+    order = R.depth_order(phantom.z_um)  # the scanner's order of tied depths (step 4)
     x, y, z = phantom.x_um[order], phantom.y_um[order], phantom.z_um[order]
     amplitude = np.sqrt(phantom.energy_pct[order] / 100.0)
     k = R.wavenumbers(config)
@@ -286,6 +290,9 @@ def test_dense_phantom_is_sensitive_to_a_narrower_shadow_radius(dense_without_mi
 
 def test_mirror_hides_everything_below_it():
     phantom = dense_phantom(count=1000)  # mirror: row 0, A-scan 37, z = 150, first of its depth
+    # Distinct depths: the scanner's argsort orders ties by the whole array,
+    # so the subset rendered below would order them differently.
+    phantom.z_um[1:] += np.arange(1, len(phantom)) * 1e-6
     above = (phantom.z_um < 150.0) | (np.arange(len(phantom)) == 0)
     assert above.sum() < 0.5 * len(phantom)
     visible = Phantom(*(c[above] for c in (phantom.x_um, phantom.y_um, phantom.z_um,
@@ -342,5 +349,6 @@ def test_reference_reproduces_official_scan(shared_data, kind, seed, scan):
     values, counts = np.unique(diff, return_counts=True)
     report = (f"{scan}: {identical:.3f} % identical, max |diff| {np.abs(diff).max()}, "
               f"level differences {dict(zip(values.tolist(), counts.tolist()))}, {seconds:.1f} s")
-    assert identical >= 99.9, report
+    # Measured: Uniform_A and Uniform_B 100 %, Layers_A 99.9985 % (2 pixels, −1 and −2).
+    assert identical >= (100.0 if kind == "uniform" else 99.99), report
     assert np.abs(diff).max() <= 2, report

@@ -100,8 +100,8 @@ def test_zero_and_tiny_energies(kernels32):
     assert np.all(grad_z[::3] == 0)
 
 
-def test_coincident_depths_keep_file_order(kernels32):
-    """Equal depths: the scanner's stable sort makes the earlier row shadow the later one."""
+def test_coincident_depths_follow_the_scanners_tie_order(kernels32):
+    """Equal depths shadow each other in the order of NumPy's classic argsort, as the reference does."""
     rng = np.random.default_rng(4)
     count = 600
     phantom = Phantom(rng.uniform(-20, 20, count), rng.uniform(-3, 3, count),
