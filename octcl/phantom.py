@@ -192,9 +192,18 @@ class Phantom:
                 f"{path}:{line_numbers[row]}: {name} = {rows[row]['xyzE'.index(name)]} outside {allowed}")
         return phantom
 
-    def save(self, path) -> None:
-        """Write ``x y z E`` rows with 6 significant digits, atomically."""
-        text = "\n".join(" ".join(f"{v:.5e}" for v in row) for row in self.as_array().tolist())
+    def save(self, path, significant_digits: int = 6) -> None:
+        """Write ``x y z E`` rows in scientific notation, atomically.
+
+        Six significant digits (the default) round depths near 1536 µm to
+        0.01 µm, i.e. up to 0.05 rad of carrier phase (2·k0 ≈ 9.67 rad/µm);
+        inverted phantoms, whose speckle depends on that phase, are written
+        with more.
+        """
+        if not 1 <= significant_digits <= 17:
+            raise ValueError(f"significant_digits must be in 1…17, got {significant_digits}")
+        spec = f".{significant_digits - 1}e"
+        text = "\n".join(" ".join(format(v, spec) for v in row) for row in self.as_array().tolist())
         with atomic_write(path, "w") as handle:
             handle.write(text + "\n" if text else "")
 
