@@ -123,9 +123,14 @@ def hann_window(nz: int) -> np.ndarray:
     return np.fft.ifftshift(0.5 - 0.5 * np.cos(2 * np.pi * n / (nz - 1)))
 
 
-def ascan_magnitude(windowed_spectrum: np.ndarray) -> np.ndarray:
-    """Step 8: |A| = |IDFT_q(S·w)| with 1/Nz normalisation; exact zeros become 1e−10."""
-    magnitude = np.abs(np.fft.ifft(windowed_spectrum, axis=0))
+def inverse_dft(windowed_spectrum: np.ndarray) -> np.ndarray:
+    """Step 8: the complex A-scans A = IDFT_q(S·w), with 1/Nz normalisation (axis 0)."""
+    return np.fft.ifft(windowed_spectrum, axis=0)
+
+
+def ascan_magnitude(a_scans: np.ndarray) -> np.ndarray:
+    """Step 8: |A|; exact zeros become 1e−10."""
+    magnitude = np.abs(a_scans)
     magnitude[magnitude == 0] = MAGNITUDE_FLOOR
     return magnitude
 
@@ -161,6 +166,7 @@ def quantise(display: np.ndarray) -> np.ndarray:
 class ReferenceRender:
     """Every intermediate of a reference rendering, (Nz, Nx) arrays."""
 
+    a_scans: np.ndarray
     magnitude: np.ndarray
     db: np.ndarray
     display: np.ndarray
@@ -200,8 +206,9 @@ def render_spectra(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG,
 
 def render_reference(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG) -> ReferenceRender:
     """Render a phantom to a B-scan with the float64 reference (physics.md §2)."""
-    spectra = render_spectra(phantom, config)
-    magnitude = ascan_magnitude(spectra * hann_window(config.depth_pixels)[:, None])
+    a_scans = inverse_dft(render_spectra(phantom, config) * hann_window(config.depth_pixels)[:, None])
+    magnitude = ascan_magnitude(a_scans)
     db = to_decibels(magnitude)
     display = to_display(db)
-    return ReferenceRender(magnitude=magnitude, db=db, display=display, levels=quantise(display))
+    return ReferenceRender(a_scans=a_scans, magnitude=magnitude, db=db, display=display,
+                           levels=quantise(display))

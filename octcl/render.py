@@ -48,8 +48,7 @@ class Rendering:
     @classmethod
     def from_a_scans(cls, a_scans: np.ndarray) -> "Rendering":
         """Steps 8–11 of the scanner from complex A-scans."""
-        magnitude = np.abs(a_scans)
-        magnitude[magnitude == 0] = ref.MAGNITUDE_FLOOR
+        magnitude = ref.ascan_magnitude(a_scans)
         display = ref.to_display(ref.to_decibels(magnitude))
         return cls(a_scans=a_scans, magnitude=magnitude, display=display, levels=ref.quantise(display))
 
@@ -105,9 +104,9 @@ def render(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG, backend: st
     """
     phantom.validate(config)
     if backend == "numpy":
-        spectra = ref.render_spectra(phantom, config)
-        a_scans = np.fft.ifft(spectra * ref.hann_window(config.depth_pixels)[:, None], axis=0)
-        return Rendering.from_a_scans(a_scans)
+        reference = ref.render_reference(phantom, config)
+        return Rendering(a_scans=reference.a_scans, magnitude=reference.magnitude,
+                         display=reference.display, levels=reference.levels)
     if backend != "opencl":
         raise ValueError(f"unknown backend {backend!r}; use 'opencl' or 'numpy'")
     from ._scanner_op import KernelSettings, ScannerKernels

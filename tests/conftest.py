@@ -49,3 +49,19 @@ def official_uniform_maps(shared_data) -> tuple[dict, dict]:
         }
 
     return maps("Exp1_Uniform_A"), maps("Exp1_Uniform_B")
+
+
+@pytest.fixture(scope="session")
+def official_reference():
+    """``rendering(kind, seed)``: float64 reference rendering of a baseline phantom, made once per session."""
+    from octcl.phantom import Phantom
+    from octcl.render import render
+
+    cache = {}
+
+    def rendering(kind, seed):
+        if (kind, seed) not in cache:
+            cache[kind, seed] = render(Phantom.baseline(kind, seed), backend="numpy")
+        return cache[kind, seed]
+
+    return rendering
