@@ -14,12 +14,13 @@ measures against the float64 NumPy reference:
 - render time (layout + forward, and each alone) and gradient time
   (forward + adjoint), the median of ``--repeats`` runs, and the reference's
   render time in the same run;
-- peak resident memory of a fresh process rendering, then taking one gradient,
-  at the default settings.
+- with ``--memory``, instead: peak resident memory of a fresh process that
+  lays out, renders and takes one gradient at the default settings.
 
 Writes ``--out``/kernels.csv and kernels.png (error against time).
 
     python scripts/bench_kernels.py --out docs/bench
+    python scripts/bench_kernels.py --memory
 """
 
 from __future__ import annotations
@@ -88,21 +89,25 @@ def measure_memory(scene: str) -> tuple[float, float]:
     """Peak RSS (MiB) of a fresh process before and after layout + render + one gradient.
 
     The first figure is the process with the phantom built and NumPy/PyOpenCL
-    loaded; the difference is what the scanner itself takes.
+    loaded; the difference is what the scanner itself takes. The peak is the
+    kernel's VmHWM of the new process image (``getrusage`` would report the
+    parent's size, inherited through fork).
     """
     code = (
-        "import resource, sys, numpy as np\n"
+        "import re, sys, numpy as np\n"
+        "def peak():\n"
+        "    return float(re.search(r'VmHWM:\\s+(\\d+)', open('/proc/self/status').read()).group(1)) / 1024\n"
         f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
         "from bench_kernels import SCENES\n"
         "from octcl._scanner_op import ScannerKernels\n"
         "from octcl.render import Rendering, display_vjp\n"
         f"p = SCENES[{scene!r}]()\n"
         "k = ScannerKernels()\n"
-        "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024\n"
+        "before = peak()\n"
         "k.set_phantom(p.x_um, p.y_um, p.z_um, np.log(p.energy_pct))\n"
         "r = Rendering.from_a_scans(k.forward(for_adjoint=True))\n"
         "k.adjoint(display_vjp(r, np.ones_like(r.display)))\n"
-        "print(before, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n")
+        "print(before, peak())\n")
     output = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     before, after = map(float, output.stdout.split()[-2:])
     return before, after
@@ -130,9 +135,17 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="two scenes, fewer settings")
     parser.add_argument("--device", help="OpenCL device (see `octcl devices`)")
+    parser.add_argument("--memory", action="store_true",
+                        help="only the peak-memory probe: a fresh process per scene")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.memory:
+        for name in scene_names(args.quick):
+            before, after = measure_memory(name)
+            print(f"{name}: peak RSS {after:.0f} MiB after render + gradient at default settings "
+                  f"({before:.0f} MiB before)", flush=True)
+        return
     rows = []
     for name in scene_names(args.quick):
         phantom = SCENES[name]()
@@ -175,13 +188,6 @@ def main() -> None:
             }
             rows.append(row)
             print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in row.items()}), flush=True)
-    for name in scene_names(args.quick):
-        before, after = measure_memory(name)
-        print(f"{name}: peak RSS {after:.0f} MiB after render + gradient at default settings "
-              f"({before:.0f} MiB before)", flush=True)
-        for row in rows:
-            if row["scene"] == name:
-                row["peak_rss_mib_default"], row["rss_mib_before_render"] = after, before
     with open(out / "kernels.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
         writer.writeheader()
