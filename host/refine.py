@@ -1,0 +1,543 @@
+"""Stage 3: refine every scatterer's depth and energy by Adam on the scorer-aligned loss.
+
+The unknowns are, per scatterer j, the depth z_j (µm) and u_j = ln E_j (E in
+%); x_j and y_j stay where stage 2 put them. One iteration is
+
+1. render: ``ScannerKernels.set_phantom`` (host sort into depth order and
+   lateral bins) → ``forward(for_adjoint=True)`` (complex A-scans) →
+   :meth:`octcl.render.Rendering.from_a_scans` (display D, 8-bit levels);
+2. the loss and ∂loss/∂D (:class:`octcl.host.loss.DisplayLoss`);
+3. back to the scatterers: :func:`octcl.render.display_vjp` (∂loss/∂A) →
+   ``ScannerKernels.adjoint`` (∂loss/∂u_j, ∂loss/∂z_j);
+4. an Adam step (Kingma & Ba, "Adam: a method for stochastic optimization",
+   ICLR 2015) on (z, u), then the constraints 0 ≤ z ≤ Nz·Δz and
+   ln E_floor ≤ u ≤ ln 100.
+
+Adam divides each parameter's step by the root mean square of its own
+gradient, so a learning rate is a step length in the parameter's own unit:
+``lr_z_um`` in µm and ``lr_u`` in nepers of energy (a step of 0.01 in u
+changes E by 1 %). The carrier phase turns by 2·k0 ≈ 9.67 rad per µm of
+depth (a full turn every 0.65 µm), so useful depth steps are thousandths of
+a µm. Measured from stages 1–2 of orange.png (exact score 0.97746; 40 or
+150 iterations, full loss):
+
+- lr_z_um 0.02 / 0.01 / 0.005 / 0.002 / 0.001 (lr_u 0.05 for 20
+  iterations, then 0.02): 0.99437 (40) / 0.99655 (40) / 0.99889 / 0.99936 /
+  0.99922 (150); lr_z_um = 0 (energies only): 0.99913 (150) — most of the
+  gain is in the energies, the depths add the rest;
+- lr_u 0.1 then 0.03: 0.99877; a constant lr_u 0.02 with lr_z_um 0.005:
+  0.99887 at 40 iterations, then falling;
+- past ~160 iterations at those rates the score falls although the loss
+  keeps falling (0.99927 → 0.99881 at 300); from the best phantom, 60 more
+  iterations at (lr_z_um, lr_u) = (0.002, 0.02) / (0.001, 0.01) /
+  (0.0005, 0.005) / (0, 0.01) gave 0.99912 / 0.99937 / 0.99943 / 0.99931
+  (from 0.99920), hence the default's lower rates after 160 iterations.
+
+The loss only stands in for the score, so progress is judged by the exact
+score (:class:`octcl.host.loss.ExactScore`, the mean of the eight official
+components of the rendered 8-bit scan). It is evaluated at checkpoints, and
+the refinement returns the best phantom it has scored. Restarts (fresh Adam
+moments at a lower learning rate, from the best phantom so far) keep the
+best of the parent and their own checkpoints, as in the published schedule.
+
+Everything stops at a deadline (``time.monotonic()``), checked before every
+iteration and every exact evaluation against their measured durations.
+
+Cost on two CPU cores (PoCL), 280k scatterers, idle machine: 0.76 s an
+iteration — set_phantom 0.12 s, forward 0.09 s, loss 0.40 s (two threads),
+adjoint 0.09 s, Adam 0.007 s — and 0.7 s per exact evaluation; under a load
+of 4–7 other processes about twice that. The 400 iterations of the default
+schedule take some 310 s idle: 0.99900 → 0.99964 on Scan_Exp2_Layers_A and
+0.99245 → 0.99950 on orange.png, most of the gain within 150 s.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from octcl.config import DEFAULT_CONFIG, ScannerConfig
+from octcl.phantom import Phantom
+from octcl.render import Rendering, display_vjp
+
+from .field import _available_cores
+from .loss import DisplayLoss, ExactScore, LossWeights
+
+#: Largest energy of the task contract, in % (u ≤ ln 100).
+MAX_ENERGY_PCT = 100.0
+
+
+@dataclass(frozen=True)
+class Phase:
+    """A run of Adam iterations at fixed learning rates.
+
+    Attributes
+    ----------
+    iterations : int
+        Adam steps.
+    lr_z_um : float
+        Step length of the depths, in µm.
+    lr_u : float
+        Step length of u = ln E (dimensionless).
+    lpips : bool
+        Include the loss's LPIPS terms (else :meth:`LossWeights.without_lpips`,
+        about a third of the loss's cost).
+    """
+
+    iterations: int
+    lr_z_um: float
+    lr_u: float
+    lpips: bool = True
+
+    def __post_init__(self):
+        if self.iterations < 0:
+            raise ValueError(f"iterations must be ≥ 0, got {self.iterations}")
+        if not (self.lr_z_um >= 0 and self.lr_u >= 0):
+            raise ValueError(f"learning rates must be ≥ 0, got {self.lr_z_um}, {self.lr_u}")
+
+
+@dataclass(frozen=True)
+class RefineSchedule:
+    """What stage 3 runs, in order, until its iterations or the deadline run out.
+
+    Attributes
+    ----------
+    phases : tuple of Phase
+        The main run: one Adam optimiser whose learning rates and loss change
+        from phase to phase (its moments carry over). The default, 20
+        iterations at (lr_z_um, lr_u) = (0.002, 0.05), 140 at (0.002, 0.02),
+        120 at (0.0005, 0.005), then two restarts of 60, follows the
+        measurements in the module docstring; on two CPU cores a 600 s
+        inversion reaches 300–600 iterations depending on the load.
+    restarts : tuple of Phase
+        Each restarts Adam (zero moments) from the best phantom so far and
+        keeps the best of that parent and its checkpoints at half its
+        iterations and at its end.
+    score_every : int
+        Iterations between exact evaluations in the main run (its last
+        iterate is always evaluated).
+    beta1, beta2, epsilon : float
+        Adam's moment decay rates and the guard of its denominator.
+        Gradients of dim scatterers reach 1e−14 (the loss is a mean over
+        131,072 pixels and ∂|A|/∂u ∝ a_j), so ε is far below them, leaving
+        every scatterer its full step. On orange.png the choice mattered
+        little: 0.99847 with ε = 1e−8 and 0.99838 with 1e−20 after 40
+        iterations at lr 0.01 / 0.02 (one run each).
+    min_log_energy : float
+        Floor of u = ln E, so E never reaches 0 (u = −∞) and a dimmed
+        scatterer keeps a gradient (∂/∂u ∝ a_j). Stage 2 scales its phantom
+        so that shadowing is negligible, which puts the median E near 1e−4 %
+        and the dimmest decoded scatterers near 1e−11 %; the default 1e−20 %
+        (a = 1e−11, 100 dB below them and far above float32's smallest
+        normal number) changes no rendering.
+    loss_weights : LossWeights
+        Weights of the loss terms (the LPIPS ones apply in ``lpips`` phases).
+    """
+
+    phases: tuple[Phase, ...] = (Phase(20, 0.002, 0.05), Phase(140, 0.002, 0.02),
+                                 Phase(120, 0.0005, 0.005))
+    restarts: tuple[Phase, ...] = (Phase(60, 0.0005, 0.005), Phase(60, 0.00025, 0.0025))
+    score_every: int = 20
+    beta1: float = 0.9
+    beta2: float = 0.999
+    epsilon: float = 1e-20
+    min_log_energy: float = math.log(1e-20)
+    loss_weights: LossWeights = field(default_factory=LossWeights)
+
+    def __post_init__(self):
+        if self.score_every < 1:
+            raise ValueError(f"score_every must be ≥ 1, got {self.score_every}")
+        if not (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.epsilon > 0):
+            raise ValueError("need 0 ≤ beta1, beta2 < 1 and epsilon > 0")
+        if not self.min_log_energy < math.log(MAX_ENERGY_PCT):
+            raise ValueError(f"min_log_energy must be below ln 100, got {self.min_log_energy}")
+
+    @classmethod
+    def published(cls) -> "RefineSchedule":
+        """The seed paper's schedule: 800 + 200 iterations, four 100-iteration restarts.
+
+        The restarts' learning rates 0.002, 0.002, 0.001, 0.0005 are taken
+        as depth steps in µm, with 10× that for u (the ratio of the best
+        rates measured here, module docstring); the main run's rates are not
+        published and are the default's. At about 1 s an iteration on two
+        CPU cores this takes some 25 minutes: it is for faster machines.
+        """
+        return cls(phases=(Phase(800, 0.002, 0.02), Phase(200, 0.0005, 0.005)),
+                   restarts=tuple(Phase(100, lr, 10 * lr) for lr in (0.002, 0.002, 0.001, 0.0005)),
+                   score_every=50)
+
+    @property
+    def total_iterations(self) -> int:
+        return sum(p.iterations for p in self.phases + self.restarts)
+
+
+@dataclass
+class Checkpoint:
+    """A scored phantom: the depths and log-energies with their exact score."""
+
+    z_um: np.ndarray
+    log_energy: np.ndarray
+    components: dict
+    stage: str
+    iteration: int
+
+    @property
+    def score(self) -> float:
+        return self.components["mean"]
+
+
+@dataclass
+class RefineResult:
+    """What :func:`refine` returns.
+
+    Attributes
+    ----------
+    phantom : Phantom
+        The best phantom scored (the input's x and y, refined z and E).
+    components : dict
+        Its eight exact components and their ``mean``.
+    initial_components : dict
+        Those of the input phantom.
+    iterations : int
+        Adam steps taken, restarts included.
+    trace : list of dict
+        Per iteration: ``time_s`` (since the start of :func:`refine`),
+        ``stage``, ``iteration``, ``loss`` and ``score`` (None where not
+        evaluated).
+    timings_s : dict
+        Total seconds in each part of the iteration (``set_phantom``,
+        ``forward``, ``loss``, ``adjoint``, ``adam``, ``exact_score``).
+    stopped_by_deadline : bool
+        The deadline cut the schedule short.
+    torch_threads : int
+        CPU threads the loss ran with at the end (:class:`_ThreadChooser`).
+    """
+
+    phantom: Phantom
+    components: dict
+    initial_components: dict
+    iterations: int
+    trace: list
+    timings_s: dict
+    stopped_by_deadline: bool
+    torch_threads: int
+
+
+def saved_precision(values: np.ndarray) -> np.ndarray:
+    """``values`` rounded to 6 significant digits, as :meth:`Phantom.save` writes them (``%.5e``).
+
+    v ↦ round(v·10^{5−e})·10^{e−5} with e = ⌊log10 |v|⌋; it differs from
+    parsing the printed text at most in the last bit (or, for a product
+    that lands within rounding error of a half, in the 6th digit).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    magnitude = np.abs(values)
+    exponent = np.floor(np.log10(magnitude, out=np.zeros_like(magnitude), where=magnitude > 0))
+    scale = 10.0 ** (5 - exponent)
+    return np.round(values * scale) / scale
+
+
+class _Adam:
+    """Adam on a list of parameter arrays, in place, with per-array learning rates.
+
+    m ← β1·m + (1 − β1)·g,  v ← β2·v + (1 − β2)·g²,
+    θ ← θ − lr·(m / (1 − β1^t)) / (sqrt(v / (1 − β2^t)) + ε).
+    """
+
+    def __init__(self, shapes, beta1: float, beta2: float, epsilon: float):
+        self.beta1, self.beta2, self.epsilon = beta1, beta2, epsilon
+        self.first = [np.zeros(shape) for shape in shapes]
+        self.second = [np.zeros(shape) for shape in shapes]
+        self.steps = 0
+
+    def step(self, params, grads, lrs) -> None:
+        self.steps += 1
+        first_correction = 1 - self.beta1**self.steps
+        second_correction = 1 - self.beta2**self.steps
+        for param, grad, lr, m, v in zip(params, grads, lrs, self.first, self.second):
+            m *= self.beta1
+            m += (1 - self.beta1) * grad
+            v *= self.beta2
+            v += (1 - self.beta2) * grad**2
+            param -= lr * (m / first_correction) / (np.sqrt(v / second_correction) + self.epsilon)
+
+
+class _Clock:
+    """Deadline bookkeeping: does an operation of measured duration still fit?"""
+
+    def __init__(self, deadline: float | None):
+        self.deadline = math.inf if deadline is None else deadline
+        self.durations: dict[str, float] = {}
+
+    def seconds_left(self) -> float:
+        return self.deadline - time.monotonic()
+
+    def fits(self, *operations: str) -> bool:
+        """True if the operations' last measured durations end before the deadline."""
+        return sum(self.durations.get(name, 0.0) for name in operations) <= self.seconds_left()
+
+    def record(self, name: str, seconds: float) -> None:
+        self.durations[name] = seconds
+
+
+class _ThreadChooser:
+    """torch's thread count for the loss: one or all cores, chosen by timing real calls.
+
+    On an idle machine all cores are faster, but when other processes hold
+    the cores every OpenMP barrier waits for a descheduled thread (measured
+    here under load: the full loss took 0.57 s with one thread and 5.7–7.7 s
+    with two, and a run that had picked two threads while the machine was
+    idle spent 8 s a call once it was not). So: calls 2–5 alternate between
+    one thread and all cores (the first warms up) and the faster is kept;
+    with all cores kept, a call slower than ``SLOWDOWN`` times the last
+    one-thread call of the same loss falls back to one thread, and all cores
+    are tried again ``RETRY_CALLS`` calls later.
+    """
+
+    SLOWDOWN = 1.5
+    RETRY_CALLS = 40
+
+    def __init__(self, cores: int):
+        self.cores = cores
+        self.threads = cores if cores > 1 else 1
+        self._plan = [self.threads, 1, cores, 1, cores] if cores > 1 else []
+        self._seconds: dict[tuple, float] = {}  # (loss kind, threads) → last call
+        self._calls, self._retry_at = 0, None
+        self._trial = False
+
+    def before_call(self) -> None:
+        self._trial = bool(self._plan) or self._retry_at == self._calls
+        current = self._plan[0] if self._plan else (self.cores if self._trial else self.threads)
+        torch.set_num_threads(current)
+        self._current = current
+
+    def after_call(self, kind, seconds: float) -> None:
+        first = self._calls == 0
+        self._calls += 1
+        if self._plan:
+            self._plan.pop(0)
+        if not first:
+            self._seconds[kind, self._current] = seconds
+        one_thread = self._seconds.get((kind, 1), math.inf)
+        if self._trial and not self._plan:  # end of a timing round: keep the faster
+            self.threads = self.cores if self._seconds.get((kind, self.cores), math.inf) < one_thread else 1
+        elif self._current == self.cores and seconds > self.SLOWDOWN * one_thread:
+            self.threads = 1
+        if self.threads == 1 and self.cores > 1 and (self._retry_at is None or self._retry_at < self._calls):
+            self._retry_at = self._calls + self.RETRY_CALLS
+
+
+class _Refiner:
+    """Rendering, loss, gradients and exact scores of one phantom's (z, u)."""
+
+    def __init__(self, x_um, y_um, kernels, target_scan, exact_score, schedule, config, clock):
+        self.x_um, self.y_um = x_um, y_um
+        self.kernels, self.exact_score, self.schedule = kernels, exact_score, schedule
+        self.depth_um = config.depth_range_um
+        self.losses = {lpips: DisplayLoss(target_scan, weights)
+                       for lpips, weights in ((True, schedule.loss_weights),
+                                              (False, schedule.loss_weights.without_lpips()))}
+        self.clock = clock
+        self.timings = dict.fromkeys(("set_phantom", "forward", "loss", "adjoint", "adam", "exact_score"), 0.0)
+        self.threads = _ThreadChooser(_available_cores())
+
+    def _timed(self, name, function, *args, **kwargs):
+        start = time.perf_counter()
+        result = function(*args, **kwargs)
+        self.timings[name] += time.perf_counter() - start
+        return result
+
+    def render(self, z_um, log_energy, for_adjoint: bool) -> Rendering:
+        start = time.perf_counter()
+        self._timed("set_phantom", self.kernels.set_phantom, self.x_um, self.y_um, z_um, log_energy)
+        a_scans = self._timed("forward", self.kernels.forward, for_adjoint=for_adjoint)
+        rendering = Rendering.from_a_scans(a_scans)
+        self.clock.record("render", time.perf_counter() - start)
+        return rendering
+
+    def gradients(self, rendering: Rendering, lpips: bool):
+        """(loss value, ∂loss/∂u, ∂loss/∂z) of the last :meth:`render` (with for_adjoint)."""
+        self.threads.before_call()
+        start = time.perf_counter()
+        value = self.losses[lpips](rendering.display)
+        seconds = time.perf_counter() - start
+        self.threads.after_call(lpips, seconds)
+        self.timings["loss"] += seconds
+        grad_u, grad_z = self._timed("adjoint", self.kernels.adjoint, display_vjp(rendering, value.grad_display))
+        return value, grad_u, grad_z
+
+    def score(self, rendering: Rendering) -> dict:
+        start = time.perf_counter()
+        components = self.exact_score(rendering.levels)
+        seconds = time.perf_counter() - start
+        self.timings["exact_score"] += seconds
+        self.clock.record("score", seconds)
+        return components
+
+    def constrain(self, z_um, log_energy) -> None:
+        """Project onto 0 ≤ z ≤ Nz·Δz and ln E_floor ≤ u ≤ ln 100, in place."""
+        np.clip(z_um, 0.0, self.depth_um, out=z_um)
+        np.clip(log_energy, self.schedule.min_log_energy, math.log(MAX_ENERGY_PCT), out=log_energy)
+
+    def round_as_saved(self, z_um, log_energy) -> None:
+        """Put z and E on the 6-significant-digit grid of the phantom file, in place.
+
+        A scored iterate is exactly what a checkpoint writes, so its score is
+        the file's: at z ≥ 1000 µm the file's last digit is 0.01 µm, a carrier
+        phase step of 0.097 rad, and rounding moved a refined phantom's score
+        by up to 7e−5 when it was scored before rounding.
+        """
+        z_um[:] = saved_precision(z_um)
+        log_energy[:] = np.log(np.minimum(saved_precision(np.exp(log_energy)), MAX_ENERGY_PCT))
+        self.constrain(z_um, log_energy)
+
+
+def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSchedule(),
+           deadline: float | None = None, kernels=None, config: ScannerConfig = DEFAULT_CONFIG,
+           progress=None, on_improvement=None, exact_score: ExactScore | None = None) -> RefineResult:
+    """Refine depths and energies of ``phantom`` towards the target scan.
+
+    Parameters
+    ----------
+    phantom : Phantom
+        The starting phantom (stage 2); its x and y are kept. Energies of 0
+        start at the energy floor e^{min_log_energy}.
+    target_path : str or Path
+        The target B-scan PNG (256×512).
+    schedule : RefineSchedule
+        Phases, restarts, checkpoints and Adam settings.
+    deadline : float, optional
+        ``time.monotonic()`` value by which :func:`refine` returns. An
+        iteration or exact evaluation starts only if its last measured
+        duration ends before it; the input phantom's own evaluation always
+        runs.
+    kernels : octcl._scanner_op.ScannerKernels, optional
+        Reuse compiled kernels (built for ``config`` if not given).
+    config : ScannerConfig
+    progress : callable, optional
+        ``progress(stage, iteration, total, score_estimate, seconds_left)``
+        after each iteration; ``score_estimate`` is the best exact score so
+        far, ``seconds_left`` the time to the deadline (inf without one).
+    on_improvement : callable, optional
+        ``on_improvement(phantom, components)`` whenever the best exact score
+        improves on the best so far (the input phantom's at first).
+    exact_score : ExactScore, optional
+        The target's scorer, if already built.
+
+    Returns
+    -------
+    RefineResult
+
+    Notes
+    -----
+    The loss (torch) runs with one thread or with all cores, whichever is
+    faster at the time (:class:`_ThreadChooser`); the caller's setting is
+    restored on return.
+    """
+    from octcl._io import read_scan
+    from octcl.scorer import SCAN_SHAPE
+
+    started = time.monotonic()
+    clock = _Clock(deadline)
+    if kernels is None:
+        from octcl._scanner_op import ScannerKernels
+
+        kernels = ScannerKernels(config)
+    exact_score = exact_score or ExactScore(target_path)
+    x_um, y_um = saved_precision(phantom.x_um), saved_precision(phantom.y_um)
+    refiner = _Refiner(x_um, y_um, kernels, read_scan(target_path, SCAN_SHAPE), exact_score,
+                       schedule, config, clock)
+    z_um = np.array(phantom.z_um, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        log_energy = np.log(phantom.energy_pct)
+    refiner.constrain(z_um, log_energy)
+    refiner.round_as_saved(z_um, log_energy)
+
+    trace, total = [], schedule.total_iterations
+    stopped = False
+    iterations = 0
+
+    def as_phantom(z, u):
+        # A copy: the iterate changes in place while a writer thread may hold
+        # the phantom; exp(ln 100) can round to just above 100.
+        return Phantom(x_um, y_um, z.copy(), np.minimum(np.exp(u), MAX_ENERGY_PCT))
+
+    initial = refiner.score(refiner.render(z_um, log_energy, for_adjoint=False))
+    best = Checkpoint(z_um.copy(), log_energy.copy(), initial, "initial", 0)
+    trace.append({"time_s": time.monotonic() - started, "stage": "initial", "iteration": 0,
+                  "loss": None, "score": initial["mean"]})
+
+    def consider(components, stage, iteration, z, u):
+        nonlocal best
+        if components["mean"] > best.score:
+            best = Checkpoint(z.copy(), u.copy(), components, stage, iteration)
+            if on_improvement:
+                on_improvement(as_phantom(z, u), components)
+
+    def run(stage, phases, z, u, checkpoints):
+        """Adam from (z, u) through ``phases``; score after the given step counts and at the end."""
+        nonlocal stopped, iterations
+        adam = _Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
+        plan = [phase for phase in phases for _ in range(phase.iterations)]
+        for step in range(len(plan) + 1):
+            last = step == len(plan)
+            if not last and not clock.fits("render", "loss_adjoint", "adam", "render", "score"):
+                stopped, last = True, True
+            if last:  # score the final iterate (not rendered yet), if that still fits
+                if step and clock.fits("render", "score"):
+                    refiner.round_as_saved(z, u)
+                    rendering = refiner.render(z, u, for_adjoint=False)
+                    components = refiner.score(rendering)
+                    trace.append({"time_s": time.monotonic() - started, "stage": stage,
+                                  "iteration": step, "loss": None, "score": components["mean"]})
+                    consider(components, stage, step, z, u)
+                return
+            scored = step in checkpoints and step > 0 and clock.fits("score")
+            if scored:
+                refiner.round_as_saved(z, u)
+            rendering = refiner.render(z, u, for_adjoint=True)
+            start = time.perf_counter()
+            value, grad_u, grad_z = refiner.gradients(rendering, plan[step].lpips)
+            clock.record("loss_adjoint", time.perf_counter() - start)
+            entry = {"time_s": time.monotonic() - started, "stage": stage, "iteration": step,
+                     "loss": value.loss, "score": None}
+            if scored:
+                components = refiner.score(rendering)
+                entry["score"] = components["mean"]
+                consider(components, stage, step, z, u)
+            trace.append(entry)
+            start = time.perf_counter()
+            adam.step((z, u), (grad_z, grad_u), (plan[step].lr_z_um, plan[step].lr_u))
+            refiner.constrain(z, u)
+            seconds = time.perf_counter() - start
+            refiner.timings["adam"] += seconds
+            clock.record("adam", seconds)
+            iterations += 1
+            if progress:
+                progress(stage, iterations, total, best.score, clock.seconds_left())
+
+    main_length = sum(p.iterations for p in schedule.phases)
+    previous_threads = torch.get_num_threads()
+    try:
+        run("refine", schedule.phases, z_um, log_energy,
+            set(range(schedule.score_every, main_length, schedule.score_every)))
+        for index, restart in enumerate(schedule.restarts, start=1):
+            if stopped:
+                break
+            run(f"restart {index}", (restart,), best.z_um.copy(), best.log_energy.copy(),
+                {restart.iterations // 2})
+    finally:
+        torch.set_num_threads(previous_threads)
+
+    return RefineResult(phantom=as_phantom(best.z_um, best.log_energy), components=best.components,
+                        initial_components=initial, iterations=iterations, trace=trace,
+                        timings_s=dict(refiner.timings), stopped_by_deadline=stopped,
+                        torch_threads=refiner.threads.threads)
+
+
+__all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineResult", "RefineSchedule", "refine",
+           "saved_precision"]

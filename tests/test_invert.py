@@ -1,0 +1,141 @@
+"""The invert pipeline: target checks, time budget, checkpoints that survive a kill, reports."""
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from octcl._io import ImageFormatError, write_grey_png
+from octcl.host.invert import invert, invert_directory
+from octcl.host.refine import Phase, RefineSchedule
+from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
+from octcl.scorer import COMPONENTS
+
+SHORT = RefineSchedule(phases=(Phase(4, 0.01, 0.02),), restarts=(), score_every=2)
+
+
+@pytest.fixture(scope="module")
+def layers_path(shared_data):
+    return shared_data / "official" / "Scan_Exp2_Layers_A.png"
+
+
+def _assert_contract(path):
+    phantom = Phantom.load(path, y_limit_um=CONTRACT_Y_LIMIT_UM)
+    assert 0 < len(phantom) <= TARGET_ROWS
+    return phantom
+
+
+@pytest.mark.parametrize("kind", ["black", "white", "grey", "small", "text"])
+def test_bad_targets_are_refused_naming_the_file(tmp_path, kind):
+    target = tmp_path / f"{kind}.png"
+    if kind == "text":
+        target.write_text("not an image\n")
+        message = "not a PNG"
+    elif kind == "small":
+        write_grey_png(target, np.zeros((128, 512), np.uint8) + np.arange(512, dtype=np.uint8)[None] // 2)
+        message = "expected 256x512"
+    else:
+        level = {"black": 0, "white": 255, "grey": 128}[kind]
+        write_grey_png(target, np.full((256, 512), level, np.uint8))
+        message = {"black": "black", "white": "white", "grey": "grey level 128"}[kind]
+    output = tmp_path / "out.txt"
+    with pytest.raises(ImageFormatError, match=message) as info:
+        invert(target, output, time_budget_s=30)
+    assert str(target) in str(info.value)
+    assert not output.exists()
+
+
+def test_bad_budget_is_refused(layers_path, tmp_path):
+    with pytest.raises(ValueError, match="time_budget_s"):
+        invert(layers_path, tmp_path / "out.txt", time_budget_s=0)
+
+
+def test_rgb_target_is_accepted_like_its_grey_rgba(layers_path, tmp_path):
+    """An RGB PNG reads as the mean of its channels; no alpha is needed."""
+    from octcl.host.invert import read_target
+
+    rgb = tmp_path / "rgb.png"
+    Image.open(layers_path).convert("RGB").save(rgb)
+    np.testing.assert_array_equal(read_target(rgb), read_target(layers_path))
+
+
+def test_budget_is_respected_and_report_written(layers_path, tmp_path):
+    budget = 40.0
+    output, report_path = tmp_path / "layers.txt", tmp_path / "layers.json"
+    calls = []
+    start = time.monotonic()
+    result = invert(layers_path, output, time_budget_s=budget, seed=3, report_path=report_path,
+                    progress=lambda *args: calls.append(args))
+    elapsed = time.monotonic() - start
+    assert elapsed < budget + 5.0
+    _assert_contract(output)
+    assert result.stopped_by_deadline and result.iterations > 0
+    assert result.score >= result.initial_score
+    assert result.checkpoints >= 1
+    assert {stage for stage, *_ in calls} >= {"field", "decode", "refine"}
+
+    report = json.loads(report_path.read_text())
+    assert report["seed"] == 3 and report["settings"]["time_budget_s"] == budget
+    assert set(COMPONENTS) <= set(report["components"])
+    assert report["peak_memory_mib"] > 0
+    stages = [entry["stage"] for entry in report["trace"]]
+    assert stages[0] == "field" and "initial" in stages and "refine" in stages
+    times = [entry["time_s"] for entry in report["trace"]]
+    assert times == sorted(times) and times[-1] <= budget
+    scored = [entry["score"] for entry in report["trace"] if entry["score"] is not None]
+    assert max(scored) == pytest.approx(result.score)
+
+
+def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):
+    """SIGKILL at a random moment after the first checkpoint: the output is a whole, valid phantom."""
+    output = tmp_path / "killed.txt"
+    # Checkpoints as often as the score improves (every iteration is scored),
+    # so the kill is likely to land during a write.
+    code = (
+        "import octcl.host.invert as invert\n"
+        "from octcl.host.refine import Phase, RefineSchedule\n"
+        "invert.CHECKPOINT_INTERVAL_S = 0.0\n"
+        f"invert.invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=120,\n"
+        "              schedule=RefineSchedule(phases=(Phase(10000, 0.002, 0.05),), restarts=(), score_every=1))\n"
+    )
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 100
+        while not output.exists():
+            assert process.poll() is None, process.stderr.read().decode()
+            assert time.monotonic() < deadline, "no checkpoint within 100 s"
+            time.sleep(0.05)
+        first_seen = output.stat().st_mtime_ns
+        time.sleep(random.Random(os.getpid()).uniform(0.0, 25.0))
+        process.send_signal(signal.SIGKILL)
+        process.wait(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == -signal.SIGKILL
+    _assert_contract(output)
+    assert output.stat().st_mtime_ns >= first_seen
+
+
+def test_directory_summary(layers_path, tmp_path):
+    targets = tmp_path / "targets"
+    targets.mkdir()
+    (targets / "layers.png").write_bytes(layers_path.read_bytes())
+    (targets / "layers_OAC.png").write_bytes(layers_path.read_bytes())  # a map file: skipped
+    write_grey_png(targets / "blank.png", np.zeros((256, 512), np.uint8))
+    summary = invert_directory(targets, tmp_path / "out", time_budget_s=25, schedule=SHORT)
+    assert set(summary["scans"]) == {"layers.png", "blank.png"}
+    assert "black" in summary["scans"]["blank.png"]["error"]
+    assert summary["score"] == pytest.approx(summary["scans"]["layers.png"]["score"])
+    _assert_contract(tmp_path / "out" / "layers.txt")
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["score"] == summary["score"]
+    assert (tmp_path / "out" / "layers.report.json").is_file()

@@ -1,0 +1,196 @@
+"""Stage 3: the scorer-aligned loss, the Adam refinement, its constraints and deadline."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import gaussian_filter
+
+from octcl._io import GREY_LUT, read_png_rgb, read_scan
+from octcl.host.loss import QUANTISER_SLOPE, DisplayLoss, ExactScore, LossWeights, scan_of_levels
+from octcl.host.refine import MAX_ENERGY_PCT, Phase, RefineSchedule, _Adam, refine, saved_precision
+from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
+from octcl.scorer import COMPONENTS, score
+
+SCAN_SHAPE = (256, 512)
+# The terms whose gradient involves no detached normaliser (maps_torch holds
+# the OAC display window constant by design), so a finite difference of the
+# un-quantised loss is their exact directional derivative.
+STRUCT_WEIGHTS = LossWeights(pixel=1.0, sc_l1=0, oac_l1=0, oac_lpips=0, oac_msssim=0,
+                             struct_msssim=1.2, struct_lpips=0.01, sc_lpips=0, rsc_lpips=0)
+
+
+@pytest.fixture(scope="module")
+def layers_path(shared_data):
+    return shared_data / "official" / "Scan_Exp2_Layers_A.png"
+
+
+@pytest.fixture(scope="module")
+def uniform_levels(shared_data):
+    return read_png_rgb(shared_data / "official" / "Scan_Exp1_Uniform_A.png")[..., 0].astype(int)
+
+
+@pytest.fixture(scope="module")
+def stage2_phantom(layers_path):
+    """A short stage 1 + 2 of the Layers scan (few scatterers, so kernels are quick)."""
+    from octcl.host.decode import decode_field
+    from octcl.host.field import fit_field
+
+    fit = fit_field(read_scan(layers_path, SCAN_SHAPE), iterations=150, time_budget_s=8.0)
+    return decode_field(fit.field, max_scatterers=60_000, seed=0)
+
+
+def _unquantised_loss(loss: DisplayLoss, display: np.ndarray) -> float:
+    """The weighted loss at P = 256·D/255, without the quantiser."""
+    with torch.no_grad():
+        terms = loss.terms(torch.tensor(QUANTISER_SLOPE * display, dtype=loss.dtype))
+    return float(sum(getattr(loss.weights, name) * value for name, value in terms.items()))
+
+
+def _directional_derivatives(loss, display, count, seed=0, step=1e-5):
+    """(central finite differences of the un-quantised loss, straight-through gradient · v)."""
+    rng = np.random.default_rng(seed)
+    gradient = loss(display).grad_display
+    finite, straight = [], []
+    for _ in range(count):
+        direction = gaussian_filter(rng.normal(size=display.shape), 4)
+        direction /= np.abs(direction).max()
+        finite.append((_unquantised_loss(loss, display + step * direction)
+                       - _unquantised_loss(loss, display - step * direction)) / (2 * step))
+        straight.append(float(np.sum(gradient * direction)))
+    return np.array(finite), np.array(straight)
+
+
+def test_loss_forward_is_the_quantised_scan(layers_path, uniform_levels):
+    """The forward value is that of the 8-bit scan the scorer reads (levels/255)."""
+    target = read_scan(layers_path, SCAN_SHAPE)
+    loss = DisplayLoss(target, STRUCT_WEIGHTS, dtype=torch.float64)
+    display = (uniform_levels + 0.7) / 256.0  # inside each level's display interval
+    levels = GREY_LUT[uniform_levels]
+    expected = _unquantised_loss(loss, levels / 255.0 / QUANTISER_SLOPE)
+    assert loss(display).loss == pytest.approx(expected, rel=1e-8)
+
+
+def test_straight_through_gradient_on_the_level_grid(layers_path, uniform_levels):
+    """Where D = c/256 (an untruncated colour index), P = 256·D/255 exactly: gradients agree."""
+    target = read_scan(layers_path, SCAN_SHAPE)
+    loss = DisplayLoss(target, STRUCT_WEIGHTS, dtype=torch.float64)
+    index = np.where(GREY_LUT[uniform_levels] == uniform_levels, uniform_levels, uniform_levels + 1)
+    assert (GREY_LUT[index] == index).all()
+    finite, straight = _directional_derivatives(loss, index / 256.0, count=4)
+    np.testing.assert_allclose(straight, finite, rtol=0.02, atol=1e-4 * np.abs(finite).max())
+
+
+def test_straight_through_gradient_between_levels(layers_path, uniform_levels):
+    """Anywhere inside the levels the estimator follows the un-quantised loss roughly."""
+    target = read_scan(layers_path, SCAN_SHAPE)
+    loss = DisplayLoss(target, STRUCT_WEIGHTS, dtype=torch.float64)
+    rng = np.random.default_rng(1)
+    display = (uniform_levels + rng.random(uniform_levels.shape)) / 256.0
+    finite, straight = _directional_derivatives(loss, display, count=6)
+    assert np.linalg.norm(straight - finite) < 0.25 * np.linalg.norm(finite)
+
+
+def test_loss_weights_skip_terms_and_refuse_bad_values(layers_path):
+    target = read_scan(layers_path, SCAN_SHAPE)
+    value = DisplayLoss(target, LossWeights().without_lpips())(target.astype(np.float64))
+    assert not any("lpips" in name for name in value.terms)
+    assert value.grad_display.shape == SCAN_SHAPE and value.grad_display.dtype == np.float64
+    with pytest.raises(ValueError, match="pixel"):
+        LossWeights(pixel=-1.0)
+    with pytest.raises(ValueError, match="positive"):
+        LossWeights(**{name: 0.0 for name in LossWeights.__dataclass_fields__})
+
+
+def test_exact_score_matches_the_scorer_on_saved_files(layers_path, uniform_levels, tmp_path):
+    """ExactScore of levels equals octcl.scorer.score of the same levels written as a PNG."""
+    from octcl._io import write_grey_png
+
+    levels = uniform_levels.astype(np.uint8)
+    write_grey_png(tmp_path / "pred.png", levels)
+    expected = score(layers_path, tmp_path / "pred.png")
+    got = ExactScore(layers_path)(levels)
+    assert got == pytest.approx(expected, abs=0, rel=0)
+    assert set(COMPONENTS) < set(got)
+    np.testing.assert_array_equal(scan_of_levels(levels), read_scan(tmp_path / "pred.png"))
+
+
+def test_adam_matches_the_textbook_update():
+    """One step from zero moments moves every parameter by −lr·sign(g) (bias-corrected Adam)."""
+    adam = _Adam([(3,), (2,)], beta1=0.9, beta2=0.999, epsilon=1e-20)
+    first, second = np.array([1.0, 2.0, 3.0]), np.array([0.5, -0.5])
+    adam.step((first, second), (np.array([1e-12, -4.0, 0.0]), np.array([3.0, -1e-9])), (0.1, 0.01))
+    np.testing.assert_allclose(first, [0.9, 2.1, 3.0])
+    np.testing.assert_allclose(second, [0.49, -0.49])
+
+
+def test_short_schedule_improves_on_stage_2(stage2_phantom, layers_path):
+    schedule = RefineSchedule(phases=(Phase(12, 0.01, 0.02),), restarts=(), score_every=6)
+    improvements, phantoms = [], []
+
+    def on_improvement(phantom, components):
+        improvements.append(components["mean"])
+        phantoms.append((phantom, phantom.z_um.copy()))
+
+    result = refine(stage2_phantom, layers_path, schedule, on_improvement=on_improvement)
+    assert result.iterations == 12
+    assert result.components["mean"] > result.initial_components["mean"]
+    assert improvements and improvements[-1] == result.components["mean"]
+    assert improvements == sorted(improvements)
+    # The phantoms handed out are snapshots (a writer thread may still hold
+    # them), not views of the iterate that Adam keeps changing.
+    assert len(phantoms) >= 2
+    for phantom, z_at_callback in phantoms:
+        np.testing.assert_array_equal(phantom.z_um, z_at_callback)
+    np.testing.assert_array_equal(phantoms[-1][0].z_um, result.phantom.z_um)
+    scored = [entry["score"] for entry in result.trace if entry.get("score") is not None]
+    assert max(scored) == result.components["mean"]
+    # x and y stay, on the file's 6-digit grid (z and E too, so the score is the file's).
+    for column in ("x_um", "y_um"):
+        np.testing.assert_array_equal(getattr(result.phantom, column),
+                                      saved_precision(getattr(stage2_phantom, column)))
+    for column in ("z_um", "energy_pct"):
+        values = getattr(result.phantom, column)
+        np.testing.assert_allclose(saved_precision(values), values, rtol=1e-15)
+
+
+def test_constraints_hold_after_steps(stage2_phantom, layers_path):
+    """Huge steps from a phantom at the bounds stay inside 0 ≤ z ≤ 1536, E_floor ≤ E ≤ 100."""
+    rng = np.random.default_rng(0)
+    count = len(stage2_phantom)
+    z = np.where(rng.random(count) < 0.5, 0.0, 1536.0)
+    energy = np.where(rng.random(count) < 0.5, MAX_ENERGY_PCT, 0.0)
+    start = Phantom(stage2_phantom.x_um, stage2_phantom.y_um, z, energy)
+    schedule = RefineSchedule(phases=(Phase(3, 50.0, 30.0),), restarts=(Phase(2, 50.0, 30.0),),
+                              score_every=1)
+    result = refine(start, layers_path, schedule)
+    assert result.iterations == 5
+    phantom = result.phantom
+    phantom.validate(y_limit_um=CONTRACT_Y_LIMIT_UM)
+    assert phantom.z_um.min() >= 0 and phantom.z_um.max() <= 1536.0
+    assert phantom.energy_pct.max() <= MAX_ENERGY_PCT
+    assert phantom.energy_pct.min() >= math.exp(schedule.min_log_energy) * (1 - 1e-12)
+
+
+def test_deadline_is_respected(stage2_phantom, layers_path):
+    schedule = RefineSchedule(phases=(Phase(10_000, 0.01, 0.02),), restarts=(), score_every=5)
+    start = time.monotonic()
+    result = refine(stage2_phantom, layers_path, schedule, deadline=start + 15.0)
+    elapsed = time.monotonic() - start
+    assert result.stopped_by_deadline
+    assert 0 < result.iterations < 10_000
+    # One initial evaluation always runs; everything else must fit the deadline.
+    assert elapsed < 15.0 + 3.0
+    assert result.components["mean"] >= result.initial_components["mean"]
+
+
+def test_schedule_checks():
+    with pytest.raises(ValueError, match="iterations"):
+        Phase(-1, 0.01, 0.01)
+    with pytest.raises(ValueError, match="score_every"):
+        RefineSchedule(score_every=0)
+    published = RefineSchedule.published()
+    assert published.total_iterations == 1400
+    assert [restart.lr_z_um for restart in published.restarts] == [0.002, 0.002, 0.001, 0.0005]
