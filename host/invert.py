@@ -45,10 +45,6 @@ CHECKPOINT_INTERVAL_S = 20.0
 #: ended at 0.99944 after 281 s, the full 11 s one at 0.99950 after 318 s.
 FIELD_BUDGET_FRACTION = 0.08
 FIELD_BUDGET_CAP_S = 45.0
-#: Significant digits of the written phantom. Six round depths near 1536 µm
-#: to 0.01 µm, up to 0.05 rad of carrier phase, which costs speckle
-#: agreement; nine keep the phase to ~1e−5 rad for ~25 % more bytes.
-OUTPUT_SIGNIFICANT_DIGITS = 9
 #: Seconds kept back from stage 3 for the last checkpoint writes and the
 #: report: a write may be under way when stage 3 ends and the best phantom
 #: still pending (each 1.5–3.5 s for 295,000 rows).
@@ -173,7 +169,7 @@ class _CheckpointWriter:
             start = time.monotonic()
             try:
                 phantom.validate(self.config, y_limit_um=CONTRACT_Y_LIMIT_UM, source=str(self.path))
-                phantom.save(self.path, significant_digits=OUTPUT_SIGNIFICANT_DIGITS)
+                phantom.save(self.path)
             except BaseException as exc:  # re-raised by close() in the caller's thread
                 with self._condition:
                     self._error, self._closed, self._pending = exc, True, None
