@@ -108,6 +108,18 @@ def kernel_source(name: str) -> str:
     return resources.files("octcl.kernels").joinpath(f"{name}.cl").read_text(encoding="utf-8")
 
 
+def build_options(defines: tuple[tuple[str, object], ...], double: bool) -> list[str]:
+    """The OpenCL compiler options of a build: ``-DKEY=VALUE`` per define, ``-DOCTCL_DOUBLE=1`` for float64.
+
+    Shared by :func:`build` and ``scripts/kernel_resources.py``, so that the
+    kernels compiled offline for GPU targets are the ones octcl runs.
+    """
+    options = [f"-D{key}={value}" for key, value in defines]
+    if double:
+        options.append("-DOCTCL_DOUBLE=1")
+    return options
+
+
 @functools.lru_cache(maxsize=None)
 def build(context, name: str, defines: tuple[tuple[str, object], ...], double: bool):
     """Build ``kernels/<name>.cl`` with ``-D`` defines; checks fp64 when asked for."""
@@ -117,11 +129,8 @@ def build(context, name: str, defines: tuple[tuple[str, object], ...], double: b
         raise OpenCLUnavailableError(
             f"{describe(device)} has no double precision (cl_khr_fp64); "
             "use float32 (the default) or another device")
-    options = [f"-D{key}={value}" for key, value in defines]
-    if double:
-        options.append("-DOCTCL_DOUBLE=1")
     try:
-        return cl.Program(context, kernel_source(name)).build(options=options)
+        return cl.Program(context, kernel_source(name)).build(options=build_options(defines, double))
     except cl.RuntimeError as exc:
         raise OpenCLUnavailableError(
             f"kernels/{name}.cl failed to build on {describe(device)}:\n{exc}") from None

@@ -71,6 +71,18 @@ def _spreading_kernel_transform(settings: KernelSettings, grid: int, s: np.ndarr
     return (width / 2) * (np.cos(np.outer(s, nodes) * width * h / 2) @ (weights * psi))
 
 
+def program_defines(config: ScannerConfig, settings: KernelSettings) -> tuple[tuple[str, object], ...]:
+    """Compile-time constants of ``kernels/scanner.cl`` for a scanner and its settings.
+
+    NZ = Nz, GRID = 2·Nz (the oversampled spreading grid), their base-2
+    logarithms, and SPREAD_WIDTH = W.
+    """
+    nz = config.depth_pixels
+    grid = 2 * nz
+    return (("NZ", nz), ("GRID", grid), ("LOG2_NZ", nz.bit_length() - 1),
+            ("LOG2_GRID", grid.bit_length() - 1), ("SPREAD_WIDTH", settings.spread_width))
+
+
 class ScannerKernels:
     """The OpenCL Virtual Scanner on one device, for one scanner configuration.
 
@@ -93,9 +105,7 @@ class ScannerKernels:
         self.grid = 2 * nz
         self.real = np.float64 if settings.double else np.float32
         self.complex = np.complex128 if settings.double else np.complex64
-        defines = (("NZ", nz), ("GRID", self.grid), ("LOG2_NZ", nz.bit_length() - 1),
-                   ("LOG2_GRID", self.grid.bit_length() - 1), ("SPREAD_WIDTH", settings.spread_width))
-        program = build(self.context, "scanner", defines, settings.double)
+        program = build(self.context, "scanner", program_defines(config, settings), settings.double)
         self._render_forward = cl.Kernel(program, "render_forward")
         self._render_adjoint = cl.Kernel(program, "render_adjoint")
         self._reduce_slots = cl.Kernel(program, "reduce_slots")
