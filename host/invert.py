@@ -33,7 +33,7 @@ from octcl._io import ImageFormatError, atomic_write, read_png_rgb, read_scan
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 
-from .refine import RefineSchedule, refine
+from .refine import RefineProgress, RefineSchedule, refine
 
 #: Least time between two checkpoint writes during refinement, in seconds.
 #: Formatting and writing 295,000 rows takes 1.5–3.5 s of CPU (measured
@@ -95,6 +95,91 @@ class InvertResult:
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class InvertProgress:
+    """Where an inversion stands: what :func:`invert` tells its ``progress`` callback.
+
+    The run ends at whichever comes first: the end of stage 3's schedule or
+    stage 3's deadline (the budget less :data:`FINAL_RESERVE_S`).
+    ``seconds_left`` is the earlier of the two estimates (the schedule's from
+    stage 3's measured seconds per iteration, once there is one), so it never
+    exceeds the time left in the budget; ``fraction`` is
+    elapsed / (elapsed + seconds_left). The last state (stage ``done``) has
+    fraction 1 and no time left.
+
+    Attributes
+    ----------
+    stage : str
+        ``field`` (stage 1), ``decode`` (stage 2), ``setup`` (kernels and
+        scorer), ``refine`` or ``restart N`` (stage 3), ``done``.
+    iteration, iterations : int
+        Steps taken and planned in the stage (stage 3: Adam steps, restarts
+        included, against the whole schedule).
+    fraction : float
+        Share of the run done, in [0, 1].
+    seconds_left : float
+        Estimated seconds until the run ends.
+    elapsed_s : float
+        Seconds since the run started.
+    score : float or None
+        The last exact score measured (None before stage 3's first).
+    score_elapsed_s : float or None
+        ``elapsed_s`` when it was measured.
+    scan : str or None
+        In :func:`invert_directory`: the scan being inverted, ``NAME (i/n)``;
+        there ``fraction`` and ``seconds_left`` are those of the whole folder.
+    """
+
+    stage: str
+    iteration: int
+    iterations: int
+    fraction: float
+    seconds_left: float
+    elapsed_s: float
+    score: float | None = None
+    score_elapsed_s: float | None = None
+    scan: str | None = None
+
+
+class _ProgressReporter:
+    """Turns the stages' callbacks into :class:`InvertProgress` states.
+
+    ``end`` is the ``time.monotonic()`` by which the budget ends the run.
+    """
+
+    def __init__(self, callback, started: float, end: float):
+        self.callback, self.started, self.end = callback, started, end
+        self.score = self.score_time = None
+        self._refine_start = None  # (monotonic time, iterations) of stage 3's first report
+
+    def __call__(self, stage: str, iteration: int, iterations: int, seconds_left: float | None = None,
+                 done: bool = False) -> None:
+        if self.callback is None:
+            return
+        now = time.monotonic()
+        budget_left = max(self.end - now, 0.0)
+        seconds_left = 0.0 if done else budget_left if seconds_left is None else min(seconds_left, budget_left)
+        elapsed = now - self.started
+        self.callback(InvertProgress(
+            stage=stage, iteration=iteration, iterations=iterations,
+            fraction=1.0 if done else elapsed / (elapsed + seconds_left) if elapsed + seconds_left > 0 else 0.0,
+            seconds_left=seconds_left, elapsed_s=elapsed, score=self.score,
+            score_elapsed_s=None if self.score_time is None else self.score_time - self.started))
+
+    def refine(self, status: RefineProgress) -> None:
+        """Stage 3's report; the schedule's time left from its seconds per iteration so far."""
+        self.score, self.score_time = status.score, status.score_time
+        now = time.monotonic()
+        if self._refine_start is None:
+            self._refine_start = (now, status.iterations)
+        start_time, start_iterations = self._refine_start
+        schedule_left = None
+        if status.iterations > start_iterations:
+            per_iteration = (now - start_time) / (status.iterations - start_iterations)
+            schedule_left = (status.total - status.iterations) * per_iteration
+        self(status.stage, status.iterations, status.total, schedule_left)
 
 
 def peak_memory_mib() -> float:
@@ -219,7 +304,8 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
         JSON report: score trace against wall time per stage, final
         components, settings, seed, timings and peak memory.
     progress : callable, optional
-        ``progress(stage, iteration, total, score_estimate, seconds_left)``.
+        ``progress(InvertProgress)`` at each step of every stage and once at
+        the end (stage ``done``).
     config : ScannerConfig
     schedule : RefineSchedule
         Stage 3's schedule (cut short by the budget).
@@ -251,24 +337,23 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     def elapsed():
         return time.monotonic() - started
 
-    def report_stage(stage, iteration, total, score=None):
-        if progress:
-            progress(stage, iteration, total, score, deadline - time.monotonic())
-
+    tell = _ProgressReporter(progress, started, deadline - FINAL_RESERVE_S)
     field_budget = min(FIELD_BUDGET_FRACTION * time_budget_s, FIELD_BUDGET_CAP_S)
+    tell("field", 0, 0)
     fit = fit_field(target, config, time_budget_s=field_budget,
-                    progress=lambda i, n, loss: report_stage("field", i, n))
+                    progress=lambda i, n, loss: tell("field", i, n))
     seconds["field"] = fit.seconds
     trace.append({"time_s": elapsed(), "stage": "field", "iteration": fit.iterations,
                   "loss": float(fit.losses[-1]) if fit.losses.size else None, "score": None})
 
+    tell("decode", 0, 1)
     start = time.monotonic()
     phantom = _decode(fit, config, seed)
     seconds["decode"] = time.monotonic() - start
     writer = _CheckpointWriter(output_path, config, CHECKPOINT_INTERVAL_S)
     writer.offer(phantom)
-    report_stage("decode", 1, 1)
 
+    tell("setup", 0, 1)
     start = time.monotonic()
     kernels = ScannerKernels(config)
     exact_score = ExactScore(target_path)
@@ -276,7 +361,7 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     offset = elapsed()
     try:
         result = refine(phantom, target_path, schedule, deadline=deadline - FINAL_RESERVE_S,
-                        kernels=kernels, config=config, progress=progress, exact_score=exact_score,
+                        kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score,
                         on_improvement=lambda improved, components: writer.offer(improved))
     finally:
         writer.close()  # writes the best phantom if the interval held it back
@@ -284,6 +369,7 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     seconds["checkpoint_writes"] = writer.seconds
     trace += [{**entry, "time_s": entry["time_s"] + offset} for entry in result.trace]
     seconds["total"] = elapsed()
+    tell("done", result.iterations, schedule.total_iterations, done=True)
 
     outcome = InvertResult(
         target=str(target_path), output=str(output_path), score=result.components["mean"],
@@ -292,7 +378,7 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
         checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
         stopped_by_deadline=result.stopped_by_deadline, seed=seed)
     if report_path is not None:
-        report = {
+        contents = {
             **outcome.as_dict(),
             "initial_components": result.initial_components,
             "settings": {"time_budget_s": time_budget_s, "field_budget_s": field_budget,
@@ -303,7 +389,7 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
             "trace": trace,
         }
         with atomic_write(report_path, "w") as handle:
-            json.dump(report, handle, indent=1, default=float)
+            json.dump(contents, handle, indent=1, default=float)
     return outcome
 
 
@@ -332,17 +418,29 @@ def invert_directory(targets_dir, out_dir, time_budget_s: float = 600.0, seed: i
                    if not path.name.endswith(("_OAC.png", "_SC.png", "_RSC.png")))
     if not names:
         raise FileNotFoundError(f"{targets_dir}: no target scans (*.png other than map files)")
-    scans = {}
-    for name in names:
+    scans, seconds_done = {}, []
+
+    def scan_progress(state: InvertProgress, index: int) -> None:
+        # The folder's time left: this scan's, then each remaining scan at the
+        # mean of those done so far (the budget before the first is done).
+        per_scan = float(np.mean(seconds_done)) if seconds_done else time_budget_s
+        seconds_left = state.seconds_left + (len(names) - index - 1) * per_scan
+        progress(dataclasses.replace(
+            state, scan=f"{names[index]} ({index + 1}/{len(names)})", seconds_left=seconds_left,
+            fraction=(index + state.fraction) / len(names)))
+
+    for index, name in enumerate(names):
         stem = Path(name).stem
-        scan_progress = None if progress is None else (
-            lambda stage, *rest, _name=stem: progress(f"{_name}: {stage}", *rest))
+        started = time.monotonic()
         try:
             result = invert(targets_dir / name, out_dir / f"{stem}.txt", time_budget_s, seed,
-                            out_dir / f"{stem}.report.json", scan_progress, config, schedule)
+                            out_dir / f"{stem}.report.json",
+                            None if progress is None else lambda state, _i=index: scan_progress(state, _i),
+                            config, schedule)
         except ImageFormatError as exc:
             scans[name] = {"error": str(exc)}
             continue
+        seconds_done.append(time.monotonic() - started)
         scans[name] = {"score": result.score, "components": result.components,
                        "seconds": result.seconds["total"], "output": result.output}
     done = [scan for scan in scans.values() if "error" not in scan]
@@ -356,5 +454,5 @@ def invert_directory(targets_dir, out_dir, time_budget_s: float = 600.0, seed: i
     return summary
 
 
-__all__ = ["CHECKPOINT_INTERVAL_S", "InvertResult", "invert", "invert_directory", "peak_memory_mib",
+__all__ = ["CHECKPOINT_INTERVAL_S", "InvertProgress", "InvertResult", "invert", "invert_directory", "peak_memory_mib",
            "read_target"]

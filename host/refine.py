@@ -190,6 +190,32 @@ class Checkpoint:
         return self.components["mean"]
 
 
+@dataclass(frozen=True)
+class RefineProgress:
+    """What :func:`refine` tells its ``progress`` callback.
+
+    Attributes
+    ----------
+    stage : str
+        ``refine`` (the main run) or ``restart N``.
+    iterations, total : int
+        Adam steps taken so far (restarts included) and in the schedule.
+    score : float
+        The last exact score measured.
+    score_time : float
+        ``time.monotonic()`` when it was measured.
+    best_score : float
+        The best exact score so far (the phantom a checkpoint holds).
+    """
+
+    stage: str
+    iterations: int
+    total: int
+    score: float
+    score_time: float
+    best_score: float
+
+
 @dataclass
 class RefineResult:
     """What :func:`refine` returns.
@@ -419,9 +445,8 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
         Reuse compiled kernels (built for ``config`` if not given).
     config : ScannerConfig
     progress : callable, optional
-        ``progress(stage, iteration, total, score_estimate, seconds_left)``
-        after each iteration; ``score_estimate`` is the best exact score so
-        far, ``seconds_left`` the time to the deadline (inf without one).
+        ``progress(RefineProgress)`` after the input phantom's evaluation,
+        after each iteration and after the final evaluation.
     on_improvement : callable, optional
         ``on_improvement(phantom, components)`` whenever the best exact score
         improves on the best so far (the input phantom's at first).
@@ -468,11 +493,17 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
 
     initial = refiner.score(refiner.render(z_um, log_energy, for_adjoint=False))
     best = Checkpoint(z_um.copy(), log_energy.copy(), initial, "initial", 0)
-    trace.append({"time_s": time.monotonic() - started, "stage": "initial", "iteration": 0,
+    last_score = (initial["mean"], time.monotonic())
+    trace.append({"time_s": last_score[1] - started, "stage": "initial", "iteration": 0,
                   "loss": None, "score": initial["mean"]})
 
+    def report(stage):
+        if progress:
+            progress(RefineProgress(stage, iterations, total, *last_score, best.score))
+
     def consider(components, stage, iteration, z, u):
-        nonlocal best
+        nonlocal best, last_score
+        last_score = (components["mean"], time.monotonic())
         if components["mean"] > best.score:
             best = Checkpoint(z.copy(), u.copy(), components, stage, iteration)
             if on_improvement:
@@ -495,6 +526,7 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
                     trace.append({"time_s": time.monotonic() - started, "stage": stage,
                                   "iteration": step, "loss": None, "score": components["mean"]})
                     consider(components, stage, step, z, u)
+                    report(stage)
                 return
             scored = step in checkpoints and step > 0 and clock.fits("score")
             if scored:
@@ -517,11 +549,11 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
             refiner.timings["adam"] += seconds
             clock.record("adam", seconds)
             iterations += 1
-            if progress:
-                progress(stage, iterations, total, best.score, clock.seconds_left())
+            report(stage)
 
     main_length = sum(p.iterations for p in schedule.phases)
     previous_threads = torch.get_num_threads()
+    report("refine")
     try:
         run("refine", schedule.phases, z_um, log_energy,
             set(range(schedule.score_every, main_length, schedule.score_every)))
@@ -539,5 +571,5 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
                         torch_threads=refiner.threads.threads)
 
 
-__all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineResult", "RefineSchedule", "refine",
+__all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule", "refine",
            "saved_precision"]
