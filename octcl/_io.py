@@ -1,4 +1,4 @@
-"""File input and output shared by every capability: atomic writes and PNG.
+"""File input and output shared by every capability: atomic writes, PNG and B-scan arrays.
 
 Every file octcl writes goes through :func:`atomic_write`: the data lands in a
 temporary file beside the destination and is renamed over it only once it is
@@ -9,11 +9,19 @@ PNG reading is strict. A B-scan is an 8-bit grey, grey+alpha, RGB or RGBA
 PNG; anything else (16-bit samples, palettes, truncated or non-PNG files, a
 wrong size) is refused with an :class:`ImageFormatError` that names the file
 and the problem, instead of being silently converted.
+
+A B-scan may also come as its 8-bit grey levels: a 2-D ``uint8`` NumPy
+array, or a ``.npy`` file of one (as the SynthOCT challenge distributes its
+real skin scans). :func:`decode_scan_levels` takes either file's bytes and
+:func:`check_scan_levels` checks an array; nothing else is converted
+either: a float array is refused rather than guessed to be in [0, 1] or
+[0, 255], and a colour PNG rather than averaged into non-integer levels.
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import struct
 import tempfile
@@ -72,23 +80,26 @@ def atomic_write(path, mode="wb"):
         raise
 
 
-def _png_header(path: Path) -> tuple[int, int, int, int]:
-    """Return (width, height, bit_depth, colour_type) from the IHDR chunk."""
+def _png_header(head: bytes, source: str) -> tuple[int, int, int, int]:
+    """Return (width, height, bit_depth, colour_type) from the IHDR chunk at the start of a PNG."""
+    if head[:8] != PNG_SIGNATURE:
+        raise ImageFormatError(f"{source}: not a PNG file (missing PNG signature)")
+    if len(head) < 33 or head[12:16] != b"IHDR":
+        raise ImageFormatError(f"{source}: truncated PNG (no complete IHDR header)")
+    width, height, bit_depth, colour_type = struct.unpack(">IIBB", head[16:26])
+    if zlib.crc32(head[12:29]) != struct.unpack(">I", head[29:33])[0]:
+        raise ImageFormatError(f"{source}: corrupt PNG (IHDR checksum mismatch)")
+    return width, height, bit_depth, colour_type
+
+
+def _read_bytes(path: Path, kind: str) -> bytes:
+    """The whole file, or an :class:`ImageFormatError` naming it when there is none."""
     try:
-        with open(path, "rb") as handle:
-            head = handle.read(33)
+        return path.read_bytes()
     except FileNotFoundError:
         raise ImageFormatError(f"{path}: no such file") from None
     except IsADirectoryError:
-        raise ImageFormatError(f"{path}: is a directory, not a PNG file") from None
-    if head[:8] != PNG_SIGNATURE:
-        raise ImageFormatError(f"{path}: not a PNG file (missing PNG signature)")
-    if len(head) < 33 or head[12:16] != b"IHDR":
-        raise ImageFormatError(f"{path}: truncated PNG (no complete IHDR header)")
-    width, height, bit_depth, colour_type = struct.unpack(">IIBB", head[16:26])
-    if zlib.crc32(head[12:29]) != struct.unpack(">I", head[29:33])[0]:
-        raise ImageFormatError(f"{path}: corrupt PNG (IHDR checksum mismatch)")
-    return width, height, bit_depth, colour_type
+        raise ImageFormatError(f"{path}: is a directory, not a {kind}") from None
 
 
 def read_png_rgb(path, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -105,32 +116,37 @@ def read_png_rgb(path, shape: tuple[int, int] | None = None) -> np.ndarray:
     ------
     ImageFormatError
         Not a PNG, truncated or corrupt, not 8-bit, a palette image, or a
-        size other than ``shape``.
+        size other than ``shape`` (:func:`decode_png_rgb`).
     """
+    path = Path(path)
+    return decode_png_rgb(_read_bytes(path, "PNG file"), shape, source=str(path))
+
+
+def decode_png_rgb(data: bytes, shape: tuple[int, int] | None = None, source: str = "PNG") -> np.ndarray:
+    """:func:`read_png_rgb` of a PNG file's bytes; messages start with ``source``."""
     from PIL import Image
 
-    path = Path(path)
-    width, height, bit_depth, colour_type = _png_header(path)
+    width, height, bit_depth, colour_type = _png_header(data[:33], source)
     kind = _COLOUR_TYPES.get(colour_type, f"colour type {colour_type}")
     if colour_type == 3:
         raise ImageFormatError(
-            f"{path}: palette PNG; save the B-scan as 8-bit grey, RGB or RGBA"
+            f"{source}: palette PNG; save the B-scan as 8-bit grey, RGB or RGBA"
         )
     if bit_depth != 8 or colour_type not in _COLOUR_TYPES:
         raise ImageFormatError(
-            f"{path}: {bit_depth}-bit {kind} PNG; octcl reads 8-bit grey, RGB or RGBA"
+            f"{source}: {bit_depth}-bit {kind} PNG; octcl reads 8-bit grey, RGB or RGBA"
         )
     if shape is not None and (height, width) != tuple(shape):
         raise ImageFormatError(
-            f"{path}: image is {height}x{width} (rows x columns), expected "
+            f"{source}: image is {height}x{width} (rows x columns), expected "
             f"{shape[0]}x{shape[1]}"
         )
     try:
-        with Image.open(path) as image:
+        with Image.open(io.BytesIO(data)) as image:
             image.load()
             pixels = np.asarray(image)
     except (OSError, SyntaxError, ValueError, zlib.error) as exc:
-        raise ImageFormatError(f"{path}: truncated or corrupt PNG ({exc})") from None
+        raise ImageFormatError(f"{source}: truncated or corrupt PNG ({exc})") from None
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
     colour = pixels[:, :, :1] if pixels.shape[2] <= 2 else pixels[:, :, :3]
@@ -163,3 +179,88 @@ def write_grey_png(path, levels: np.ndarray) -> None:
     rgba[..., 3] = 255
     with atomic_write(path) as handle:
         Image.fromarray(rgba).save(handle, format="PNG")
+
+
+#: The first bytes of a ``.npy`` file (NumPy's format, version-independent).
+NPY_MAGIC = b"\x93NUMPY"
+
+
+def check_scan_levels(levels, shape: tuple[int, int], source: str = "array") -> np.ndarray:
+    """Check that ``levels`` are a B-scan's grey levels: a 2-D ``uint8`` array of ``shape``.
+
+    Returns the array itself (C-contiguous). Raises :class:`ImageFormatError`
+    starting with ``source``, saying what the array is: empty, of Python
+    objects, not 2-D (a colour image is 3-D), another size, or not 8-bit
+    (floats are refused: 0.5 could be a level or a fraction of 255, and
+    guessing would change every pixel).
+    """
+    expected = f"a B-scan is a 2-D uint8 array of grey levels ({shape[0]}x{shape[1]}, rows x columns)"
+    if not isinstance(levels, np.ndarray):
+        raise ImageFormatError(f"{source}: a {type(levels).__name__}, not a NumPy array; {expected}")
+    if levels.size == 0:
+        raise ImageFormatError(f"{source}: empty array (shape {levels.shape}); {expected}")
+    if levels.dtype == object:
+        raise ImageFormatError(f"{source}: array of Python objects (dtype object); {expected}")
+    if levels.ndim != 2:
+        raise ImageFormatError(f"{source}: {levels.ndim}-D array of shape {levels.shape}; {expected}")
+    if levels.shape != tuple(shape):
+        raise ImageFormatError(
+            f"{source}: array is {levels.shape[0]}x{levels.shape[1]} (rows x columns), expected "
+            f"{shape[0]}x{shape[1]}")
+    if levels.dtype != np.uint8:
+        hint = " (floats are not scaled or rounded: save the levels as uint8)" \
+            if levels.dtype.kind in "fc" else ""
+        raise ImageFormatError(f"{source}: {levels.dtype} array; {expected}{hint}")
+    return np.ascontiguousarray(levels)
+
+
+def _decode_npy(data: bytes, source: str) -> np.ndarray:
+    """A ``.npy`` file's array, without unpickling, with its truncation named."""
+    stream = io.BytesIO(data)
+    try:
+        version = np.lib.format.read_magic(stream)
+        header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        array_shape, fortran_order, dtype = header(stream)
+    except ValueError as exc:
+        raise ImageFormatError(f"{source}: corrupt .npy header ({exc})") from None
+    if dtype.hasobject:
+        raise ImageFormatError(
+            f"{source}: .npy of Python objects (dtype object), not loaded (that would run pickle); "
+            f"a B-scan is a 2-D uint8 array of grey levels")
+    stored = len(data) - stream.tell()
+    needed = int(np.prod(array_shape, dtype=np.int64)) * dtype.itemsize
+    if stored < needed:
+        raise ImageFormatError(
+            f"{source}: truncated .npy file: its header announces a {dtype} array of shape "
+            f"{array_shape} ({needed:,} bytes) but {stored:,} bytes follow")
+    array = np.frombuffer(data, dtype=dtype, count=needed // dtype.itemsize if dtype.itemsize else 0,
+                          offset=stream.tell())
+    return array.reshape(array_shape, order="F" if fortran_order else "C")
+
+
+def decode_scan_levels(data: bytes, shape: tuple[int, int], source: str) -> np.ndarray:
+    """A B-scan file's bytes (PNG or ``.npy``) as its (rows, columns) ``uint8`` grey levels.
+
+    A PNG is read as :func:`decode_png_rgb` reads it and must be grey (R = G
+    = B: every scanner writes grey; the mean of unequal channels is no
+    8-bit level). A ``.npy`` must hold what :func:`check_scan_levels`
+    accepts. The kind is told by the first bytes, not the file name.
+
+    Raises
+    ------
+    ImageFormatError
+        Empty, neither PNG nor ``.npy``, or not a usable B-scan; the message
+        starts with ``source`` and says why.
+    """
+    if not data:
+        raise ImageFormatError(f"{source}: empty file")
+    if data.startswith(NPY_MAGIC):
+        return check_scan_levels(_decode_npy(data, source), shape, source).copy()
+    if data.startswith(PNG_SIGNATURE[:4]):
+        rgb = decode_png_rgb(data, shape, source)
+        coloured = np.count_nonzero((rgb[..., 0] != rgb[..., 1]) | (rgb[..., 0] != rgb[..., 2]))
+        if coloured:
+            raise ImageFormatError(
+                f"{source}: colour PNG (R, G and B differ at {coloured:,} pixels); a B-scan is grey")
+        return np.ascontiguousarray(rgb[..., 0])
+    raise ImageFormatError(f"{source}: neither a PNG nor a .npy file (it starts with {data[:8]!r})")

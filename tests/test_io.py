@@ -1,12 +1,15 @@
-"""PNG reading and writing: strict checks with messages that name the file and the problem."""
+"""PNG reading and writing, B-scan arrays: strict checks with messages that name the file and the problem."""
 
+import io
 import os
+import re
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from octcl._io import GREY_LUT, ImageFormatError, atomic_write, read_png_rgb, read_scan, write_grey_png
+from octcl._io import (GREY_LUT, ImageFormatError, atomic_write, check_scan_levels, decode_scan_levels,
+                       read_png_rgb, read_scan, write_grey_png)
 
 SHAPE = (256, 512)
 
@@ -108,3 +111,66 @@ def test_grey_lut_matches_matplotlib_gray_bytes():
     np.testing.assert_array_equal(GREY_LUT[1:-1], expected)
     lowered = index[GREY_LUT != index]
     assert lowered.size == 24 and lowered[0] == 33 and lowered[-1] == 244
+
+
+def npy_bytes(array, **kwargs) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array, **kwargs)
+    return buffer.getvalue()
+
+
+def test_scan_levels_from_npy_and_png_bytes(tmp_path):
+    levels = np.random.default_rng(2).integers(0, 256, SHAPE, dtype=np.uint8)
+    for data in (npy_bytes(levels), npy_bytes(np.asfortranarray(levels))):
+        decoded = decode_scan_levels(data, SHAPE, "scan.npy")
+        np.testing.assert_array_equal(decoded, levels)
+        assert decoded.dtype == np.uint8 and decoded.flags.c_contiguous and decoded.flags.writeable
+    write_grey_png(tmp_path / "scan.png", levels)
+    np.testing.assert_array_equal(decode_scan_levels((tmp_path / "scan.png").read_bytes(), SHAPE, "scan.png"),
+                                  levels)
+    np.testing.assert_array_equal(check_scan_levels(levels, SHAPE), levels)
+
+
+@pytest.mark.parametrize("array, message", [
+    (np.zeros(SHAPE, np.float32), "float32 array; a B-scan is a 2-D uint8 array of grey levels (256x512, rows x "
+                                  "columns) (floats are not scaled or rounded: save the levels as uint8)"),
+    (np.zeros(SHAPE, np.uint16), "uint16 array; a B-scan is a 2-D uint8 array"),
+    (np.zeros((512, 256), np.uint8), "array is 512x256 (rows x columns), expected 256x512"),
+    (np.zeros(SHAPE + (3,), np.uint8), "3-D array of shape (256, 512, 3); a B-scan is a 2-D uint8 array"),
+    (np.zeros((0,), np.uint8), "empty array (shape (0,)); a B-scan is a 2-D uint8 array"),
+    (np.zeros((256, 0), np.uint8), "empty array (shape (256, 0))"),
+    (np.full(SHAPE, None, dtype=object), "array of Python objects (dtype object)"),
+])
+def test_bad_arrays_are_refused_saying_what_they_are(array, message):
+    with pytest.raises(ImageFormatError) as caught:
+        check_scan_levels(array, SHAPE, "Male/Cheek/x.npy")
+    assert str(caught.value).startswith("Male/Cheek/x.npy: ") and message in str(caught.value)
+    if array.dtype != object:  # the same message from a .npy file of it
+        with pytest.raises(ImageFormatError, match=re.escape(message)):
+            decode_scan_levels(npy_bytes(array), SHAPE, "x.npy")
+
+
+def test_bad_npy_files_are_refused():
+    whole = npy_bytes(np.zeros(SHAPE, np.uint8))
+    with pytest.raises(ImageFormatError, match=r"x\.npy: truncated \.npy file: its header announces a uint8 array "
+                                               r"of shape \(256, 512\) \(131,072 bytes\) but 1,000 bytes follow"):
+        decode_scan_levels(whole[:len(whole) - 131072 + 1000], SHAPE, "x.npy")
+    with pytest.raises(ImageFormatError, match=r"x\.npy: corrupt \.npy header"):
+        decode_scan_levels(whole[:20], SHAPE, "x.npy")
+    objects = npy_bytes(np.array([1, "a"], dtype=object), allow_pickle=True)
+    with pytest.raises(ImageFormatError, match=r"x\.npy: \.npy of Python objects \(dtype object\), not loaded"):
+        decode_scan_levels(objects, SHAPE, "x.npy")
+    with pytest.raises(ImageFormatError, match=r"x\.npy: empty file"):
+        decode_scan_levels(b"", SHAPE, "x.npy")
+    with pytest.raises(ImageFormatError, match=r"x\.npy: neither a PNG nor a \.npy file"):
+        decode_scan_levels(b"x y z E\n", SHAPE, "x.npy")
+
+
+def test_colour_png_is_refused_as_levels(tmp_path):
+    rgb = np.zeros(SHAPE + (3,), dtype=np.uint8)
+    rgb[:10, :10, 0] = 200
+    data = save(tmp_path / "colour.png", rgb).read_bytes()
+    with pytest.raises(ImageFormatError, match=r"colour\.png: colour PNG \(R, G and B differ at 100 pixels\)"):
+        decode_scan_levels(data, SHAPE, "colour.png")
+    with pytest.raises(ImageFormatError, match=r"c\.png: image is 200x512"):
+        decode_scan_levels(save(tmp_path / "c.png", np.zeros((200, 512), np.uint8)).read_bytes(), SHAPE, "c.png")
