@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from octcl._io import ImageFormatError, atomic_write, read_png_rgb, read_scan
+from octcl._io import ImageFormatError, atomic_write, check_scan_levels, read_png_rgb, read_scan
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 
@@ -127,9 +127,6 @@ class InvertProgress:
         The last exact score measured (None before stage 3's first).
     score_elapsed_s : float or None
         ``elapsed_s`` when it was measured.
-    scan : str or None
-        In :func:`invert_directory`: the scan being inverted, ``NAME (i/n)``;
-        there ``fraction`` and ``seconds_left`` are those of the whole folder.
     """
 
     stage: str
@@ -140,7 +137,6 @@ class InvertProgress:
     elapsed_s: float
     score: float | None = None
     score_elapsed_s: float | None = None
-    scan: str | None = None
 
 
 class _ProgressReporter:
@@ -188,28 +184,45 @@ def peak_memory_mib() -> float:
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024
 
 
-def read_target(path, config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """Read and check a target B-scan PNG; returns it as :func:`octcl._io.read_scan` does.
+def read_target(target, config: ScannerConfig = DEFAULT_CONFIG, source: str | None = None) -> np.ndarray:
+    """Read and check a target B-scan; returns it as :func:`octcl._io.read_scan` does.
+
+    ``target`` is a PNG file, or the scan's 8-bit grey levels as a 2-D
+    ``uint8`` array, taken as the opaque grey PNG of them that the scanner
+    writes (pixel values level / 255; scored as :class:`octcl.host.loss.
+    ExactScore` scores such a PNG).
+    ``source`` names the target in messages (default: the path, or
+    ``target array``).
 
     Raises
     ------
     ImageFormatError
-        Not a PNG, not 8-bit, not (Nz, Nx) (:func:`octcl._io.read_png_rgb`),
-        or one uniform level. The scanner's display puts its brightest pixel
-        at level 255 and spans 51 dB below it, so an all-black or uniform
-        grey image is not one of its B-scans, and an all-white one would
-        need every pixel equally bright: no phantom renders such an image,
-        and its OAC and speckle maps are undefined (0/0), so it is refused
-        rather than inverted into noise.
+        Not a PNG, not 8-bit, not (Nz, Nx) (:func:`octcl._io.read_png_rgb`,
+        :func:`octcl._io.check_scan_levels`), or one uniform level. The
+        scanner's display puts its brightest pixel at level 255 and spans
+        51 dB below it, so an all-black or uniform grey image is not one of
+        its B-scans, and an all-white one would need every pixel equally
+        bright: no phantom renders such an image, and its OAC and speckle
+        maps are undefined (0/0), so it is refused rather than inverted into
+        noise.
     """
-    rgb = read_png_rgb(path, config.shape)
-    low, high = int(rgb.min()), int(rgb.max())
+    if isinstance(target, np.ndarray):
+        source = source or "target array"
+        pixels = check_scan_levels(target, config.shape, source)
+    else:
+        source = source or str(target)
+        pixels = read_png_rgb(target, config.shape)
+    low, high = int(pixels.min()), int(pixels.max())
     if low == high:
         colour = {0: "black", 255: "white"}.get(low, f"grey level {low}")
         raise ImageFormatError(
-            f"{path}: every pixel is {colour}; a B-scan has structure (its brightest pixel is "
+            f"{source}: every pixel is {colour}; a B-scan has structure (its brightest pixel is "
             "level 255 and its speckle spans the 51 dB display range), so there is nothing to invert")
-    return read_scan(path, config.shape)
+    if isinstance(target, np.ndarray):
+        from .loss import scan_of_levels
+
+        return scan_of_levels(pixels)
+    return read_scan(target, config.shape)
 
 
 class _CheckpointWriter:
@@ -287,8 +300,9 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
 
     Parameters
     ----------
-    target_path : str or Path
-        The target: an 8-bit (Nz × Nx) grey, RGB or RGBA PNG.
+    target_path : str, Path or ndarray
+        The target: an 8-bit (Nz × Nx) grey, RGB or RGBA PNG, or its grey
+        levels as an (Nz, Nx) ``uint8`` array (:func:`read_target`).
     output_path : str or Path
         The phantom text file (``x y z E`` rows, ≤ 295,000 of them, all
         within the task contract: |x| ≤ Xmax/2, |y| ≤ 3 µm, 0 ≤ z ≤ Nz·Δz,
@@ -330,7 +344,9 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     if not (isinstance(time_budget_s, (int, float)) and time_budget_s > 0 and math.isfinite(time_budget_s)):
         raise ValueError(f"time_budget_s must be a positive number of seconds, got {time_budget_s!r}")
     deadline = started + time_budget_s
-    target_path, output_path = Path(target_path), Path(output_path)
+    if not isinstance(target_path, np.ndarray):
+        target_path = Path(target_path)
+    output_path = Path(output_path)
     target = read_target(target_path, config)
     seconds, trace = {}, []
 
@@ -372,7 +388,8 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     tell("done", result.iterations, schedule.total_iterations, done=True)
 
     outcome = InvertResult(
-        target=str(target_path), output=str(output_path), score=result.components["mean"],
+        target="array" if isinstance(target_path, np.ndarray) else str(target_path), output=str(output_path),
+        score=result.components["mean"],
         components=result.components, initial_score=result.initial_components["mean"],
         scatterers=len(result.phantom), iterations=result.iterations, seconds=seconds,
         checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
@@ -393,66 +410,4 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     return outcome
 
 
-def invert_directory(targets_dir, out_dir, time_budget_s: float = 600.0, seed: int = 0, progress=None,
-                     config: ScannerConfig = DEFAULT_CONFIG,
-                     schedule: RefineSchedule = RefineSchedule()) -> dict:
-    """Invert every B-scan PNG of a folder, with a summary.
-
-    Each ``NAME.png`` (map files ``*_OAC.png``, ``*_SC.png``, ``*_RSC.png``
-    excluded) becomes ``out_dir/NAME.txt`` with its report
-    ``out_dir/NAME.report.json``, each with the full ``time_budget_s``. A
-    target that cannot be read is recorded with its error and skipped.
-
-    Returns
-    -------
-    dict
-        ``scans``: {file name: {score, components, seconds, output} or
-        {error}}; ``medians``: median of each component over the inverted
-        scans; ``score``: the mean of those medians (the global score);
-        ``median_seconds``. Also written to ``out_dir/summary.json``.
-    """
-    from octcl.scorer import COMPONENTS
-
-    targets_dir, out_dir = Path(targets_dir), Path(out_dir)
-    names = sorted(path.name for path in targets_dir.glob("*.png")
-                   if not path.name.endswith(("_OAC.png", "_SC.png", "_RSC.png")))
-    if not names:
-        raise FileNotFoundError(f"{targets_dir}: no target scans (*.png other than map files)")
-    scans, seconds_done = {}, []
-
-    def scan_progress(state: InvertProgress, index: int) -> None:
-        # The folder's time left: this scan's, then each remaining scan at the
-        # mean of those done so far (the budget before the first is done).
-        per_scan = float(np.mean(seconds_done)) if seconds_done else time_budget_s
-        seconds_left = state.seconds_left + (len(names) - index - 1) * per_scan
-        progress(dataclasses.replace(
-            state, scan=f"{names[index]} ({index + 1}/{len(names)})", seconds_left=seconds_left,
-            fraction=(index + state.fraction) / len(names)))
-
-    for index, name in enumerate(names):
-        stem = Path(name).stem
-        started = time.monotonic()
-        try:
-            result = invert(targets_dir / name, out_dir / f"{stem}.txt", time_budget_s, seed,
-                            out_dir / f"{stem}.report.json",
-                            None if progress is None else lambda state, _i=index: scan_progress(state, _i),
-                            config, schedule)
-        except ImageFormatError as exc:
-            scans[name] = {"error": str(exc)}
-            continue
-        seconds_done.append(time.monotonic() - started)
-        scans[name] = {"score": result.score, "components": result.components,
-                       "seconds": result.seconds["total"], "output": result.output}
-    done = [scan for scan in scans.values() if "error" not in scan]
-    summary = {"scans": scans, "time_budget_s": time_budget_s, "seed": seed}
-    if done:
-        medians = {c: float(np.median([scan["components"][c] for scan in done])) for c in COMPONENTS}
-        summary.update(medians=medians, score=float(np.mean(list(medians.values()))),
-                       median_seconds=float(np.median([scan["seconds"] for scan in done])))
-    with atomic_write(out_dir / "summary.json", "w") as handle:
-        json.dump(summary, handle, indent=1)
-    return summary
-
-
-__all__ = ["CHECKPOINT_INTERVAL_S", "InvertProgress", "InvertResult", "invert", "invert_directory", "peak_memory_mib",
-           "read_target"]
+__all__ = ["CHECKPOINT_INTERVAL_S", "InvertProgress", "InvertResult", "invert", "peak_memory_mib", "read_target"]

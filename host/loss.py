@@ -227,12 +227,13 @@ def scan_of_levels(levels: np.ndarray) -> np.ndarray:
 
 
 class ExactScore:
-    """The eight official score components of rendered levels against a target PNG.
+    """The eight official score components of rendered levels against a target scan.
 
     Parameters
     ----------
-    target_path : str or Path
-        The target B-scan PNG (256×512).
+    target : str, Path or ndarray
+        The target B-scan PNG (256×512), or its grey levels as a ``uint8``
+        array, scored as the grey RGBA PNG of them that the scanner writes.
 
     Notes
     -----
@@ -241,19 +242,23 @@ class ExactScore:
     checkpoints only.
     """
 
-    def __init__(self, target_path):
-        self.target_maps = scorer._scan_maps_for_metrics(target_path)
+    def __init__(self, target):
+        self.target_maps = self._metric_maps(target) if isinstance(target, np.ndarray) \
+            else scorer._scan_maps_for_metrics(target)
 
     @staticmethod
     def maps_of_levels(levels: np.ndarray) -> dict[str, np.ndarray]:
         """The Struct, OAC, SC and RSC 8-bit maps of a scan saved with these levels."""
         return {"Struct": levels, **map_levels(scan_of_levels(levels))}
 
+    @classmethod
+    def _metric_maps(cls, levels: np.ndarray) -> dict[str, np.ndarray]:
+        """The four maps of these levels as the official metric reads their PNGs."""
+        return {name: scorer._levels_for_metrics(image) for name, image in cls.maps_of_levels(levels).items()}
+
     def __call__(self, levels: np.ndarray) -> dict[str, float]:
         """``msssim_<map>`` and ``one_minus_lpips_<map>`` for the four maps, and ``mean``."""
-        predicted = {name: scorer._levels_for_metrics(image)
-                     for name, image in self.maps_of_levels(levels).items()}
-        components = scorer._score_grey_maps(self.target_maps, predicted)
+        components = scorer._score_grey_maps(self.target_maps, self._metric_maps(levels))
         components["mean"] = float(np.mean([components[name] for name in scorer.COMPONENTS]))
         return components
 

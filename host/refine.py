@@ -65,7 +65,7 @@ from octcl.phantom import Phantom
 from octcl.render import Rendering, display_vjp
 
 from .field import _available_cores
-from .loss import DisplayLoss, ExactScore, LossWeights
+from .loss import DisplayLoss, ExactScore, LossWeights, scan_of_levels
 
 #: Largest energy of the task contract, in % (u ≤ ln 100).
 MAX_ENERGY_PCT = 100.0
@@ -432,8 +432,8 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
     phantom : Phantom
         The starting phantom (stage 2); its x and y are kept. Energies of 0
         start at the energy floor e^{min_log_energy}.
-    target_path : str or Path
-        The target B-scan PNG (256×512).
+    target_path : str, Path or ndarray
+        The target B-scan PNG (256×512), or its ``uint8`` grey levels.
     schedule : RefineSchedule
         Phases, restarts, checkpoints and Adam settings.
     deadline : float, optional
@@ -474,7 +474,9 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
         kernels = ScannerKernels(config)
     exact_score = exact_score or ExactScore(target_path)
     x_um, y_um = saved_precision(phantom.x_um), saved_precision(phantom.y_um)
-    refiner = _Refiner(x_um, y_um, kernels, read_scan(target_path, SCAN_SHAPE), exact_score,
+    target_scan = scan_of_levels(target_path) if isinstance(target_path, np.ndarray) \
+        else read_scan(target_path, SCAN_SHAPE)
+    refiner = _Refiner(x_um, y_um, kernels, target_scan, exact_score,
                        schedule, config, clock)
     z_um = np.array(phantom.z_um, dtype=np.float64)
     with np.errstate(divide="ignore"):

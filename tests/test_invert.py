@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from octcl._io import ImageFormatError, write_grey_png
-from octcl.host.invert import invert, invert_directory
+from octcl.host.invert import invert, read_target
 from octcl.host.refine import Phase, RefineSchedule
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.scorer import COMPONENTS
@@ -59,11 +59,34 @@ def test_bad_budget_is_refused(layers_path, tmp_path):
 
 def test_rgb_target_is_accepted_like_its_grey_rgba(layers_path, tmp_path):
     """An RGB PNG reads as the mean of its channels; no alpha is needed."""
-    from octcl.host.invert import read_target
-
     rgb = tmp_path / "rgb.png"
     Image.open(layers_path).convert("RGB").save(rgb)
     np.testing.assert_array_equal(read_target(rgb), read_target(layers_path))
+
+
+def test_array_target_is_its_grey_rgba_png(layers_path):
+    """Levels as an array read and score as the grey RGBA PNG the scanner writes of them."""
+    from octcl._io import read_png_rgb
+    from octcl.host.loss import ExactScore
+
+    levels = read_png_rgb(layers_path)[..., 0]
+    np.testing.assert_array_equal(read_target(levels), read_target(layers_path))
+    from_file, from_array = ExactScore(layers_path).target_maps, ExactScore(levels).target_maps
+    for name in from_file:
+        np.testing.assert_array_equal(from_array[name], from_file[name])
+
+
+@pytest.mark.parametrize("array, message", [
+    (np.zeros((256, 512)), "scan.npy: float64 array"),
+    (np.zeros((256, 512, 3), np.uint8), "scan.npy: 3-D array"),
+    (np.full((256, 512), 255, np.uint8), "scan.npy: every pixel is white"),
+])
+def test_bad_array_targets_are_refused(array, message, tmp_path):
+    with pytest.raises(ImageFormatError, match=message):
+        read_target(array, source="scan.npy")
+    with pytest.raises(ImageFormatError, match=message.replace("scan.npy", "target array")):
+        invert(array, tmp_path / "out.txt", time_budget_s=30)
+    assert not (tmp_path / "out.txt").exists()
 
 
 def test_budget_is_respected_and_report_written(layers_path, tmp_path):
@@ -136,18 +159,3 @@ def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):
     assert process.returncode == -signal.SIGKILL
     _assert_contract(output)
     assert output.stat().st_mtime_ns >= first_seen
-
-
-def test_directory_summary(layers_path, tmp_path):
-    targets = tmp_path / "targets"
-    targets.mkdir()
-    (targets / "layers.png").write_bytes(layers_path.read_bytes())
-    (targets / "layers_OAC.png").write_bytes(layers_path.read_bytes())  # a map file: skipped
-    write_grey_png(targets / "blank.png", np.zeros((256, 512), np.uint8))
-    summary = invert_directory(targets, tmp_path / "out", time_budget_s=25, schedule=SHORT)
-    assert set(summary["scans"]) == {"layers.png", "blank.png"}
-    assert "black" in summary["scans"]["blank.png"]["error"]
-    assert summary["score"] == pytest.approx(summary["scans"]["layers.png"]["score"])
-    _assert_contract(tmp_path / "out" / "layers.txt")
-    assert json.loads((tmp_path / "out" / "summary.json").read_text())["score"] == summary["score"]
-    assert (tmp_path / "out" / "layers.report.json").is_file()
