@@ -291,11 +291,20 @@ def _high_pass(image: torch.Tensor) -> torch.Tensor:
 
 
 def _available_cores() -> int:
-    """CPU cores this process may run on."""
+    """CPU cores this process may use: those it may run on, at most ``OMP_NUM_THREADS`` where set.
+
+    ``OMP_NUM_THREADS`` is how a process is given a share of a machine's
+    cores: batch schedulers set it per job, and octcl's batch mode sets it
+    in each Dask worker to the worker's thread count
+    (:mod:`octcl.host.batch.runner`), so that two workers on two cores use
+    one core each instead of both timing and fighting over both.
+    """
     try:
-        return len(os.sched_getaffinity(0))
+        cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
-        return os.cpu_count() or 1
+        cores = os.cpu_count() or 1
+    share = os.environ.get("OMP_NUM_THREADS", "")
+    return min(cores, int(share)) if share.isdigit() and int(share) >= 1 else cores
 
 
 def _thread_trials(threads: int | None, iterations: int) -> list[int]:
