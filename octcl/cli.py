@@ -148,7 +148,7 @@ def _invert_progress(display: ProgressDisplay):
             if state.iterations > 1 and state.stage != "done" else state.stage
         score = "" if state.score is None else \
             f"score {state.score:.5f} at {format_seconds(state.score_elapsed_s)}"
-        text = "  ".join(part for part in (state.scan, stage, score) if part)
+        text = "  ".join(part for part in (stage, score) if part)
         display.update(state.fraction, text, state.seconds_left, force=state.stage != last_stage)
         last_stage = state.stage
 
@@ -169,9 +169,42 @@ def _invert_lines(result: dict) -> list[str]:
             f"checkpoints {result['checkpoints']}, peak memory {result['peak_memory_mib']:.0f} MiB"]
 
 
-def _cmd_invert(args) -> int:
-    from .host.invert import invert, invert_directory
+def _batch_progress(display: ProgressDisplay, quiet: bool):
+    """A progress callback for :func:`octcl.host.batch.invert_batch`: the cluster line once, then the bar."""
+    told = None
 
+    def show(state) -> None:
+        nonlocal told
+        if state.cluster != told and state.cluster and not quiet:
+            print(f"octcl invert: {state.cluster}", file=sys.stderr, flush=True)
+        told = state.cluster
+        text = (f"{state.finished}/{state.total} scans: {state.inverted} inverted, {state.resumed} resumed, "
+                f"{state.running} running, {state.failed} failed")
+        display.update(state.finished / state.total, text, state.seconds_left, force=True)
+
+    return show
+
+
+_BATCH_ONLY = ("workers", "threads_per_worker", "scheduler", "tls_ca_file", "tls_cert", "tls_key", "force",
+               "retries")
+
+
+def _security(args):
+    """Dask TLS settings from --tls-*, or None (Dask's configuration then applies)."""
+    if not (args.tls_ca_file or args.tls_cert or args.tls_key):
+        return None
+    if not (args.tls_ca_file and args.tls_cert and args.tls_key):
+        raise UsageError("TLS needs all three of --tls-ca-file, --tls-cert and --tls-key")
+    if not args.scheduler:
+        raise UsageError("--tls-* are for a remote cluster (--scheduler tls://HOST:PORT); "
+                         "the local cluster listens on 127.0.0.1 only")
+    from distributed import Security
+
+    return Security(tls_ca_file=args.tls_ca_file, tls_client_cert=args.tls_cert, tls_client_key=args.tls_key,
+                    require_encryption=True)
+
+
+def _cmd_invert(args) -> int:
     config = _config(args)
     if bool(args.targets) == bool(args.target):
         raise UsageError("give TARGET.png -o PHANTOM.txt, or --targets DIR --out DIR")
@@ -179,26 +212,39 @@ def _cmd_invert(args) -> int:
         raise UsageError("--targets needs --out DIR")
     if args.target and not args.output:
         raise UsageError("invert needs -o PHANTOM.txt")
-    with _display(args, "invert") as display:
-        progress = _invert_progress(display)
-        if args.targets:
-            summary = invert_directory(args.targets, args.out, time_budget_s=args.time_budget,
-                                       seed=args.seed, progress=progress, config=config)
-        else:
-            result = invert(args.target, args.output, time_budget_s=args.time_budget, seed=args.seed,
-                            report_path=args.report, progress=progress, config=config).as_dict()
     if args.target:
+        given = [f"--{name.replace('_', '-')}" for name in _BATCH_ONLY if getattr(args, name) not in (None, False)]
+        if given:
+            raise UsageError(f"{', '.join(given)}: only with --targets DIR --out DIR")
+        from .host.invert import invert
+
+        with _display(args, "invert") as display:
+            result = invert(args.target, args.output, time_budget_s=args.time_budget, seed=args.seed,
+                            report_path=args.report, progress=_invert_progress(display), config=config).as_dict()
         payload = {**result, "report": str(args.report) if args.report else None}
         return _finish(args, payload, [*_invert_lines(result), *([f"report: {args.report}"] if args.report else [])])
-    human = []
-    for name, scan in summary["scans"].items():
-        human.append(f"{name}: error: {scan['error']}" if "error" in scan else
-                     f"{name}: {scan['score']:.5f} in {format_seconds(scan['seconds'])} -> {scan['output']}")
+
+    from .host.batch import invert_batch
+
+    options = {} if config is DEFAULT_CONFIG else {"config": config}
+    with _display(args, "invert") as display:
+        summary = invert_batch(
+            args.targets, args.out, time_budget_s=args.time_budget, seed=args.seed, workers=args.workers,
+            threads_per_worker=args.threads_per_worker, scheduler=args.scheduler, security=_security(args),
+            force=args.force, progress=_batch_progress(display, args.quiet),
+            **({} if args.retries is None else {"retries": args.retries}), **options)
+    counts = ", ".join(f"{n} {status}" for status, n in summary["counts"].items() if n)
+    human = [f"{len(summary['scans'])} scans: {counts}"]
+    failed = [(name, row["error"]) for name, row in summary["scans"].items() if row["status"] == "failed"]
+    human += [f"failed: {error}" for _, error in failed[:5]]
+    if len(failed) > 5:
+        human.append(f"... and {len(failed) - 5} more failed (summary.csv)")
     if "score" in summary:
         human += ["medians:", *_format_table(summary["medians"]),
                   f"score (global, mean of the 8 medians): {summary['score']:.5f}; "
                   f"median_seconds {format_seconds(summary['median_seconds'])}"]
-    human.append(f"summary: {Path(args.out) / 'summary.json'}")
+    out = Path(args.out)
+    human.append(f"summary: {out / 'summary.csv'}, {out / 'summary.json'}; report: {out / 'report.html'}")
     return _finish(args, summary, human)
 
 
@@ -269,15 +315,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="Configuration.ini")
     p.add_argument("-o", "--output", required=True, help="phantom text file to write")
 
-    p = command("invert", "invert a target B-scan into a phantom", _cmd_invert)
+    p = command("invert", "invert a target B-scan into a phantom, or every scan of a folder tree", _cmd_invert)
     p.add_argument("target", nargs="?", help="target B-scan PNG (256×512)")
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
-    p.add_argument("--targets", help="folder of target PNGs (with --out)")
-    p.add_argument("--out", help="output folder for --targets")
     p.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan (default 600)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--report", help="JSON report: score trace against time, per stage")
     p.add_argument("--config", help="Configuration.ini")
+    batch = p.add_argument_group(
+        "batch", "every scan under a folder, on a Dask cluster; done scans are skipped on a rerun (docs/batch.md)")
+    batch.add_argument("--targets", help="folder of target scans (*.png, *.npy), searched recursively")
+    batch.add_argument("--out", help="output folder: the targets' tree of phantoms and reports, summary.csv, "
+                                     "summary.json, report.html")
+    batch.add_argument("--workers", type=int, help="local worker processes (default: one per core / threads)")
+    batch.add_argument("--threads-per-worker", type=int, help="threads of each local worker, used by its scan "
+                                                              "(default 1)")
+    batch.add_argument("--scheduler", help="an existing Dask scheduler instead of the local cluster, "
+                                           "e.g. tcp://10.0.0.5:8786 or tls://...")
+    batch.add_argument("--tls-ca-file", help="TLS: certificate authority of the cluster (with --scheduler)")
+    batch.add_argument("--tls-cert", help="TLS: this client's certificate")
+    batch.add_argument("--tls-key", help="TLS: this client's private key")
+    batch.add_argument("--force", action="store_true", help="invert scans that are already done too")
+    batch.add_argument("--retries", type=int, help="worker deaths or errors a scan survives (default 2)")
 
     p = command("weights", "fetch or check the LPIPS weights", _cmd_weights)
     p.add_argument("action", choices=("fetch", "check"))
@@ -296,7 +355,7 @@ def main(argv=None) -> int:
     from ._runtime import OpenCLUnavailableError
 
     expected = (PhantomError, ImageFormatError, ConfigError, UsageError, WeightsMissingError,
-                WeightsIntegrityError, OpenCLUnavailableError, FileNotFoundError, ValueError)
+                WeightsIntegrityError, OpenCLUnavailableError, FileNotFoundError, ValueError, ConnectionError)
     try:
         return args.handler(args)
     except expected as exc:

@@ -3,7 +3,8 @@
 #  1. reproduce the official Layers scan: render the regenerated baseline phantom,
 #     make its maps, score it against the official scan (needs ../shared/data);
 #  2. invert a bundled example: render a skin-like phantom, invert that B-scan
-#     into a new phantom (time budget $DEMO_BUDGET s, default 120), render and score it.
+#     into a new phantom with the batch command (time budget $DEMO_BUDGET s,
+#     default 120), render and score it, and point at its comparison panel.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh >/dev/null
@@ -24,9 +25,11 @@ fi
 
 echo "== 2. Inverting a skin-like B-scan (budget ${DEMO_BUDGET:-120} s)"
 $octcl phantom skin --seed 7 -o "$out/skin.txt"
-$octcl render "$out/skin.txt" -o "$out/skin.png"
-$octcl invert "$out/skin.png" -o "$out/skin_inverted.txt" --time-budget "${DEMO_BUDGET:-120}" \
-    --report "$out/skin_invert_report.json" >/dev/null
-$octcl render "$out/skin_inverted.txt" -o "$out/skin_inverted.png"
-$octcl score "$out/skin.png" "$out/skin_inverted.png"
+mkdir -p "$out/targets"
+$octcl render "$out/skin.txt" -o "$out/targets/skin.png"
+$octcl invert --targets "$out/targets" --out "$out/inverted" --time-budget "${DEMO_BUDGET:-120}" --force >/dev/null
+$octcl render "$out/inverted/skin.txt" -o "$out/skin_inverted.png"
+$octcl score "$out/targets/skin.png" "$out/skin_inverted.png"
 echo "Outputs in $out/"
+echo "Target and rendering side by side (scan, OAC, SC, RSC): $out/inverted/skin.panel.png"
+echo "Report of the batch: $out/inverted/report.html"

@@ -65,3 +65,50 @@ def official_reference():
         return cache[kind, seed]
 
     return rendering
+
+
+@pytest.fixture(scope="session")
+def report_table():
+    """``report_table(html_text)``: the scans table of a batch's report.html as {column: cell} rows.
+
+    A cell is its ``data-value`` as a float (None where empty) for number
+    columns, else its text.
+    """
+    from html.parser import HTMLParser
+
+    class Table(HTMLParser):
+        def __init__(self):
+            super().__init__()
+            self.inside, self.header, self.rows, self.cell = False, [], [], None
+
+        def handle_starttag(self, tag, attrs):
+            attrs = dict(attrs)
+            if tag == "table" and attrs.get("id") == "scans":
+                self.inside = True
+            elif self.inside and tag == "tr":
+                self.rows.append([])
+            elif self.inside and tag in ("td", "th"):
+                value = attrs.get("data-value")
+                self.cell = {"value": None if value in (None, "") else float(value), "numeric": value is not None,
+                             "text": "", "header": tag == "th"}
+
+        def handle_data(self, data):
+            if self.cell is not None:
+                self.cell["text"] += data
+
+        def handle_endtag(self, tag):
+            if tag == "table":
+                self.inside = False
+            elif self.inside and tag in ("td", "th") and self.cell is not None:
+                self.rows[-1].append(self.cell)
+                self.cell = None
+
+    def parse(text: str) -> list[dict]:
+        table = Table()
+        table.feed(text)
+        header, *rows = table.rows
+        names = [cell["text"] for cell in header]
+        return [{name: cell["value"] if cell["numeric"] else (cell["text"] or None)
+                 for name, cell in zip(names, row)} for row in rows]
+
+    return parse

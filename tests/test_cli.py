@@ -23,7 +23,8 @@ JSON_KEYS = {
     "score --refs": {"refs", "preds", "scans", "medians", "score", "csv", "seconds"},
     "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
                "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "seed", "report"},
-    "invert --targets": {"scans", "medians", "score", "median_seconds", "time_budget_s", "seed"},
+    "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "octcl_version", "time_budget_s",
+                         "seed", "options", "cluster", "wall_s"},
     "weights": {"weights", "ok"},
     "devices": {"id", "device", "default"},
 }
@@ -121,6 +122,11 @@ def test_render_numpy_backend_and_truncate(tmp_path, capsys):
     (["score", "--refs", "{tmp}"], "--preds"),
     (["render", "{tmp}/bad_phantom.txt", "-o", "{tmp}/x.png"], "bad_phantom.txt:2: E = 'abc' is not a number"),
     (["devices", "--device", "no-such-device"], "no OpenCL device matches 'no-such-device'"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--workers", "2"], "--workers: only with --targets"),
+    (["invert", "--targets", "{tmp}/missing", "--out", "{tmp}/out"], "missing: no such folder"),
+    (["invert", "--targets", "{tmp}", "--out", "{tmp}/out", "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"],
+     "workers and threads per worker are the cluster's own"),
+    (["invert", "--targets", "{tmp}", "--out", "{tmp}/out", "--tls-cert", "c.pem"], "TLS needs all three"),
 ])
 def test_bad_input_exits_2_with_one_line_reason(tmp_path, capsys, argv, message):
     (tmp_path / "bad.png").write_text("not an image")
@@ -159,10 +165,18 @@ def test_invert_prints_a_summary_or_json(tmp_path, capsys, shared_data):
     status, out, _ = run(capsys, "invert", target, "-o", tmp_path / "b.txt", "--time-budget", 20, "--json")
     assert status == 0 and set(json.loads(out)) == JSON_KEYS["invert"]
     targets = tmp_path / "targets"
-    targets.mkdir()
-    (targets / "layers.png").write_bytes(target.read_bytes())
-    status, out, _ = run(capsys, "invert", "--targets", targets, "--out", tmp_path / "out",
-                         "--time-budget", 20, "--json")
+    (targets / "sub").mkdir(parents=True)
+    (targets / "sub" / "layers.png").write_bytes(target.read_bytes())
+    status, out, err = run(capsys, "invert", "--targets", targets, "--out", tmp_path / "out",
+                           "--time-budget", 20, "--workers", 1, "--json")
     summary = json.loads(out)
     assert status == 0 and set(summary) == JSON_KEYS["invert --targets"]
-    assert set(summary["scans"]["layers.png"]) >= {"score", "components", "seconds", "output"}
+    assert set(summary["scans"]["sub/layers.png"]) == {"scan", "status", *COMPONENT_KEYS, "seconds",
+                                                       "peak_memory_mib", "cpu_s", "worker", "error"}
+    assert summary["counts"]["inverted"] == 1 and (tmp_path / "out" / "sub" / "layers.txt").is_file()
+    assert "dashboard http://127.0.0.1:" in err and "invert 100%  1/1 scans: 1 inverted" in err
+    # Everything done: a rerun starts no cluster and says so.
+    status, human, err = run(capsys, "invert", "--targets", targets, "--out", tmp_path / "out",
+                             "--time-budget", 20, "--workers", 1)
+    assert status == 0 and "1 scans: 1 resumed" in human and "report.html" in human
+    assert "dashboard" not in err

@@ -1,0 +1,97 @@
+"""One scan of a batch, as a Dask worker runs it: target bytes in, phantom and report bytes out.
+
+Nothing here touches the client's files: the target arrives as the file's
+bytes, is decoded and checked here (:func:`octcl._io.decode_scan_levels`,
+:func:`octcl.host.invert.read_target`), inverted into the worker's own
+scratch folder, and the phantom, its report and two pictures go back to the
+client, which writes them. So workers need octcl and nothing else: no shared
+file system.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+from octcl._io import ImageFormatError, decode_scan_levels
+from octcl.config import DEFAULT_CONFIG
+
+
+def _scratch_folder() -> str | None:
+    """The Dask worker's local directory (cleaned by Dask, also after a crash), else the system's."""
+    try:
+        from distributed import get_worker
+
+        return get_worker().local_directory
+    except ValueError:  # not inside a Dask task
+        return None
+
+
+def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options: dict) -> dict:
+    """Invert the target file ``data`` (PNG or ``.npy`` bytes) called ``name``.
+
+    Parameters
+    ----------
+    name : str
+        The target's name in messages and in the report.
+    data : bytes
+        The target file's contents.
+    time_budget_s, seed, options
+        :func:`octcl.host.invert.invert`'s budget, seed and other keyword
+        options, passed on unchanged.
+
+    Returns
+    -------
+    dict
+        ``name``; for a target that is not a usable B-scan only ``error``,
+        its one-line reason (no retry can change that); else ``phantom``
+        (the file's bytes), ``report`` (invert's report, ``target`` set to
+        ``name``), ``panel`` and ``plot`` (PNG bytes,
+        :func:`octcl.host.batch.report.comparison_panel` and
+        :func:`~octcl.host.batch.report.score_plot`), ``cpu_s`` (this
+        process's CPU seconds, all threads, while inverting), ``wall_s``,
+        ``worker`` (host name and process id).
+
+    Notes
+    -----
+    torch runs with as many threads as the process may use
+    (:func:`octcl.host.field._available_cores`: a Dask worker's thread
+    count, set by :class:`octcl.host.batch.runner.OneScanPerWorker`). Other
+    failures raise, so that Dask retries the scan.
+    """
+    import torch
+
+    from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
+    from octcl.render import render
+
+    from ..field import _available_cores
+    from ..invert import invert, read_target
+    from .report import comparison_panel, score_plot
+
+    started, cpu_started = time.monotonic(), time.process_time()
+    config = options.get("config", DEFAULT_CONFIG)
+    try:
+        levels = decode_scan_levels(data, config.shape, name)
+        read_target(levels, config, source=name)
+    except ImageFormatError as exc:
+        return {"name": name, "error": str(exc)}
+    torch.set_num_threads(_available_cores())
+    with tempfile.TemporaryDirectory(prefix="octcl-scan-", dir=_scratch_folder()) as scratch:
+        phantom_path, report_path = Path(scratch) / "phantom.txt", Path(scratch) / "report.json"
+        result = invert(levels, phantom_path, time_budget_s, seed, report_path, **options)
+        cpu_s = time.process_time() - cpu_started
+        phantom = phantom_path.read_bytes()
+        report = json.loads(report_path.read_text())
+        rendering = render(Phantom.load(phantom_path, config, y_limit_um=CONTRACT_Y_LIMIT_UM), config)
+    report["target"] = name
+    title = f"{name}: score {result.score:.5f} after {result.seconds['total']:.0f} s"
+    return {"name": name, "phantom": phantom, "report": report,
+            "panel": comparison_panel(levels, rendering.levels, title),
+            "plot": score_plot({name: report["trace"]}, name),
+            "cpu_s": cpu_s, "wall_s": time.monotonic() - started, "worker": f"{os.uname().nodename}:{os.getpid()}"}
+
+
+__all__ = ["invert_scan"]

@@ -1,0 +1,253 @@
+"""Batches on real Dask clusters: a stock scheduler and workers, a worker killed mid-scan, a client killed
+mid-batch and rerun, a changed target, and an embedded cluster nobody else can reach.
+
+Inversions here run at a budget of a few seconds: what is tested is where
+scans go and what is written, not how good the phantoms are.
+"""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from octcl._io import write_grey_png
+from octcl.host.batch.report import read_summary_csv
+from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
+from octcl.render import render
+
+DASK = str(Path(sys.executable).with_name("dask"))
+#: Seconds per scan: long enough for a first exact score, short enough for CI.
+BUDGET_S = 12
+
+
+def wait_for(condition, timeout_s: float, what: str, process=None):
+    deadline = time.monotonic() + timeout_s
+    while not (result := condition()):
+        if process is not None and process.poll() is not None:
+            raise AssertionError(f"{what}: process ended first\n{process.stderr.read().decode()[-3000:]}")
+        assert time.monotonic() < deadline, f"{what}: not within {timeout_s} s"
+        time.sleep(0.2)
+    return result
+
+
+@pytest.fixture(scope="module")
+def skin_levels():
+    """Three distinct synthetic targets' levels."""
+    return [render(Phantom.skin(seed)).levels for seed in range(3)]
+
+
+def make_targets(folder: Path, skin_levels, bad: bool = False) -> list[str]:
+    """Targets in a nested tree, PNG and .npy; their names."""
+    (folder / "Male/Cheek").mkdir(parents=True)
+    (folder / "Female").mkdir()
+    np.save(folder / "Male/Cheek/a.npy", skin_levels[0])
+    write_grey_png(folder / "Female/b.png", skin_levels[1])
+    names = ["Female/b.png", "Male/Cheek/a.npy"]
+    if bad:
+        np.save(folder / "Female/bad.npy", skin_levels[2].astype(np.float32))
+        names.insert(0, "Female/bad.npy")
+    return names
+
+
+class StockCluster:
+    """``dask scheduler`` and ``dask worker`` processes on 127.0.0.1, as a user starts them."""
+
+    def __init__(self, folder: Path):
+        self.folder, self.workers = folder, {}
+        self.file = folder / "scheduler.json"
+        self.scheduler = subprocess.Popen(
+            [DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+             "--scheduler-file", str(self.file)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        wait_for(self.file.exists, 60, "scheduler file", self.scheduler)
+        self.address = wait_for(lambda: json.loads(self.file.read_text() or "{}").get("address"), 10, "address")
+
+    def start_worker(self, name: str) -> None:
+        # No nanny: the process killed is the one running the scan.
+        self.workers[name] = subprocess.Popen(
+            [DASK, "worker", "--scheduler-file", str(self.file), "--nthreads", "1", "--no-nanny",
+             "--host", "127.0.0.1", "--no-dashboard", "--name", name,
+             "--local-directory", str(self.folder / name)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def client(self):
+        from distributed import Client
+
+        return Client(self.address, timeout=30)
+
+    def close(self) -> None:
+        for process in [*self.workers.values(), self.scheduler]:
+            if process.poll() is None:
+                process.terminate()
+        for process in [*self.workers.values(), self.scheduler]:
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+@pytest.fixture(scope="module")
+def stock_cluster(tmp_path_factory):
+    cluster = StockCluster(tmp_path_factory.mktemp("cluster"))
+    try:
+        for name in ("w0", "w1"):
+            cluster.start_worker(name)
+        with cluster.client() as client:
+            client.wait_for_workers(2, timeout=120)
+        yield cluster
+    finally:
+        cluster.close()
+
+
+def batch_command(targets: Path, out: Path, *options) -> list[str]:
+    return [sys.executable, "-m", "octcl.cli", "invert", "--targets", str(targets), "--out", str(out),
+            "--time-budget", str(BUDGET_S), "--quiet", "--json", *map(str, options)]
+
+
+def check_outputs(out: Path, names: list[str], report_table) -> dict:
+    """Every scan listed everywhere, every phantom whole and valid; returns summary.json."""
+    summary = json.loads((out / "summary.json").read_text())
+    assert sorted(summary["scans"]) == sorted(names)
+    csv_rows = read_summary_csv(out / "summary.csv")
+    assert [row["scan"] for row in csv_rows] == list(summary["scans"])
+    assert report_table((out / "report.html").read_text()) == [
+        {column: row[column] or None for column in row} for row in csv_rows]
+    for name, row in summary["scans"].items():
+        if row["status"] in ("inverted", "resumed"):
+            stem = out / Path(name).with_suffix("")
+            phantom = Phantom.load(stem.with_suffix(".txt"), y_limit_um=CONTRACT_Y_LIMIT_UM)
+            assert 0 < len(phantom) <= 300_000
+            report = json.loads(stem.with_suffix(".report.json").read_text())
+            assert report["target"] == name and report["batch"]["target"] == name
+            assert row["mean"] == report["components"]["mean"]
+    return summary
+
+
+def test_stock_cluster_survives_a_worker_killed_mid_scan(stock_cluster, skin_levels, tmp_path, report_table):
+    """--scheduler: the scan of a SIGKILLed worker is redone on the other; a bad target fails alone."""
+    names = make_targets(tmp_path / "targets", skin_levels, bad=True)
+    out = tmp_path / "out"
+    batch = subprocess.Popen(batch_command(tmp_path / "targets", out, "--scheduler", stock_cluster.address),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    killed = None
+    try:
+        with stock_cluster.client() as client:
+            def busy_worker():
+                # A worker 3 s into a scan: past decoding, inside the inversion.
+                processing = {address: keys for address, keys in client.processing().items()
+                              if any(str(key).startswith("invert-") for key in keys)}
+                now = time.monotonic()
+                for address in processing:
+                    busy_since.setdefault(address, now)
+                return next((address for address in processing if now - busy_since[address] > 3), None)
+
+            busy_since = {}
+            address = wait_for(busy_worker, 240, "a worker inverting a scan", batch)
+            killed = client.scheduler_info()["workers"][address]["name"]
+            victim = stock_cluster.workers[killed]
+            victim.send_signal(signal.SIGKILL)
+            victim.wait(timeout=30)
+            wait_for(lambda: address not in client.scheduler_info()["workers"], 30, "the scheduler noticing")
+        stdout, stderr = batch.communicate(timeout=600)
+    finally:
+        if batch.poll() is None:
+            batch.kill()
+            batch.wait()
+        if killed is not None:
+            stock_cluster.start_worker(killed)  # for the next test
+    assert batch.returncode == 0, stderr.decode()[-3000:]
+    summary = check_outputs(out, names, report_table)
+    assert json.loads(stdout) == summary
+    statuses = {name: row["status"] for name, row in summary["scans"].items()}
+    assert statuses == {"Female/bad.npy": "failed", "Female/b.png": "inverted", "Male/Cheek/a.npy": "inverted"}
+    assert summary["scans"]["Female/bad.npy"]["error"].startswith("Female/bad.npy: float32 array")
+    assert summary["counts"] == {"inverted": 2, "resumed": 0, "failed": 1, "pending": 0}
+    assert "score" in summary and summary["cluster"].startswith(f"cluster at {stock_cluster.address}")
+
+
+def test_killed_client_rerun_finishes_only_the_rest_and_redoes_a_changed_target(
+        stock_cluster, skin_levels, tmp_path, report_table):
+    names = make_targets(tmp_path / "targets", skin_levels)
+    out = tmp_path / "out"
+    command = batch_command(tmp_path / "targets", out, "--scheduler", stock_cluster.address)
+    first = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        done = wait_for(lambda: sorted(out.rglob("*.report.json")), 300, "a first finished scan", first)
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+    assert not (out / "summary.json").exists()  # killed before the end
+    finished = {path.relative_to(out).as_posix(): path.with_suffix("").with_suffix(".txt").stat().st_mtime_ns
+                for path in out.rglob("*.report.json")}
+    assert 1 <= len(finished) < len(names), done
+
+    rerun = subprocess.run(command, capture_output=True, timeout=600)
+    assert rerun.returncode == 0, rerun.stderr.decode()[-3000:]
+    summary = check_outputs(out, names, report_table)
+    resumed = {name for name, row in summary["scans"].items() if row["status"] == "resumed"}
+    assert {name.rsplit(".", 1)[0] for name in resumed} == {key.rsplit(".report", 1)[0] for key in finished}
+    assert summary["counts"]["inverted"] == len(names) - len(finished)
+    for report, mtime in finished.items():  # untouched by the rerun
+        assert (out / report.replace(".report.json", ".txt")).stat().st_mtime_ns == mtime
+
+    # A changed target is inverted again; the other is not.
+    write_grey_png(tmp_path / "targets/Female/b.png", skin_levels[2])
+    rerun = subprocess.run(command, capture_output=True, timeout=600)
+    assert rerun.returncode == 0, rerun.stderr.decode()[-3000:]
+    statuses = {name: row["status"] for name, row in check_outputs(out, names, report_table)["scans"].items()}
+    assert statuses == {"Female/b.png": "inverted", "Male/Cheek/a.npy": "resumed"}
+
+
+def other_addresses() -> list[str]:
+    """This machine's non-loopback IPv4 addresses."""
+    import psutil
+
+    return [address.address for addresses in psutil.net_if_addrs().values() for address in addresses
+            if address.family == socket.AF_INET and not address.address.startswith("127.")]
+
+
+def test_embedded_cluster_listens_on_loopback_only_and_workers_take_their_threads():
+    import psutil
+
+    from octcl.host.batch.runner import SCAN_RESOURCE, connect
+
+    with connect(workers=1, threads_per_worker=2) as (client, description):
+        assert "dashboard http://127.0.0.1:" in description
+        processes = [psutil.Process(), *psutil.Process().children(recursive=True)]
+        listening = [connection.laddr for process in processes
+                     for connection in process.net_connections(kind="inet") if connection.status == "LISTEN"]
+        ports = {address.port for address in listening}
+        assert len(ports) >= 3  # scheduler, dashboard, worker (and its nanny)
+        assert {address.ip for address in listening} == {"127.0.0.1"}
+        for ip in other_addresses():
+            for port in ports:
+                with pytest.raises(OSError), socket.create_connection((ip, port), timeout=2):
+                    pass
+
+        def worker_settings(dask_worker):
+            from octcl.host.field import _available_cores
+
+            return (os.environ["OMP_NUM_THREADS"], os.environ["POCL_MAX_PTHREAD_COUNT"], _available_cores(),
+                    dict(dask_worker.state.total_resources))
+
+        (settings,) = client.run(worker_settings).values()
+        assert settings[:2] == ("2", "2") and settings[2] == min(2, len(psutil.Process().cpu_affinity()))
+        assert settings[3] == {SCAN_RESOURCE: 1}
+
+
+def test_unreachable_scheduler_is_a_one_line_error(tmp_path, skin_levels):
+    make_targets(tmp_path / "targets", skin_levels)
+    with socket.socket() as unused:
+        unused.bind(("127.0.0.1", 0))
+        port = unused.getsockname()[1]
+    result = subprocess.run([*batch_command(tmp_path / "targets", tmp_path / "out"), "--scheduler",
+                             f"tcp://127.0.0.1:{port}"], capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "3s"})
+    assert result.returncode == 2
+    assert result.stderr.startswith(f"octcl invert: error: tcp://127.0.0.1:{port}: no Dask scheduler answers")
