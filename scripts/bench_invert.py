@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from octcl._io import atomic_write, read_png_rgb, write_grey_png
-from octcl.host.loss import ExactScore, scan_of_levels
-from octcl.maps import map_levels
+from octcl.host.batch.report import comparison_panel, score_plot
+from octcl.host.loss import ExactScore
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.render import render
 from octcl.scorer import COMPONENTS
@@ -68,60 +68,6 @@ def run_invert(target: Path, output: Path, report: Path, budget: float, seed: in
                    check=True)
 
 
-def panel(path: Path, target_levels: np.ndarray, render_levels: np.ndarray, title: str) -> None:
-    """Target and rendering, each as Struct, OAC, SC and RSC, in a 2×4 grid (Pillow)."""
-    from PIL import Image, ImageDraw
-
-    rows = []
-    for levels in (target_levels, render_levels):
-        maps = map_levels(scan_of_levels(levels))
-        rows.append([levels, maps["OAC"], maps["SC"], maps["RSC"]])
-    height, width = target_levels.shape
-    label = 16
-    image = Image.new("L", (4 * width, 2 * (height + label) + label), 255)
-    draw = ImageDraw.Draw(image)
-    draw.text((4, 2), title, fill=0)
-    for r, (row_name, row) in enumerate(zip(("target", "rendering"), rows)):
-        top = label + r * (height + label)
-        for c, (map_name, levels) in enumerate(zip(("scan", "OAC", "SC", "RSC"), row)):
-            draw.text((c * width + 4, top + 2), f"{row_name} {map_name}", fill=0)
-            image.paste(Image.fromarray(levels), (c * width, top + label))
-    with atomic_write(path) as handle:
-        image.save(handle, format="PNG")
-
-
-def score_vs_time(path: Path, reports: dict) -> None:
-    """Exact score against wall time per scan (matplotlib if importable, else Pillow)."""
-    series = {}
-    for name, report in reports.items():
-        points = [(e["time_s"], e["score"]) for e in report["trace"] if e.get("score") is not None]
-        best, xs, ys = -np.inf, [], []
-        for t, s in points:  # the best so far: what the checkpoint holds
-            best = max(best, s)
-            xs.append(t)
-            ys.append(best)
-        series[name] = (xs, ys)
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        from octcl._plot import line_chart
-
-        line_chart(path, series, "best exact score against time", "seconds", "score")
-        return
-    figure, axes = plt.subplots(figsize=(9, 5.6))
-    for name, (xs, ys) in series.items():
-        axes.plot(xs, ys, label=name)
-    axes.set(xlabel="seconds", ylabel="score", title="best exact score against time")
-    axes.legend()
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=100)
-    with atomic_write(path) as handle:
-        handle.write(buffer.getvalue())
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan (default 600)")
@@ -147,8 +93,10 @@ def main(argv=None) -> int:
         levels = render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels
         write_grey_png(args.out / f"{name}_render.png", levels)
         components = ExactScore(target)(levels)
-        panel(args.out / f"{name}_panel.png", read_png_rgb(target)[..., 0], levels,
-              f"{name}: score {components['mean']:.5f} after {report['seconds']['total']:.0f} s")
+        with atomic_write(args.out / f"{name}_panel.png") as handle:
+            handle.write(comparison_panel(read_png_rgb(target)[..., 0], levels,
+                                          f"{name}: score {components['mean']:.5f} after "
+                                          f"{report['seconds']['total']:.0f} s"))
         rows[name] = {**{c: components[c] for c in COMPONENTS}, "mean": components["mean"],
                       "initial_score": report["initial_score"], "iterations": report["iterations"],
                       "seconds": report["seconds"]["total"], "wall_s": wall,
@@ -172,7 +120,9 @@ def main(argv=None) -> int:
     writer.writerow(["median", *(medians[c] for c in COMPONENTS), summary["score"], "", "", summary["median_seconds"]])
     with atomic_write(args.out / "bench.csv", "w") as handle:
         handle.write(buffer.getvalue())
-    score_vs_time(args.out / "score_vs_time.png", reports)
+    with atomic_write(args.out / "score_vs_time.png") as handle:
+        handle.write(score_plot({name: report["trace"] for name, report in reports.items()},
+                                "best exact score against time", size=(9, 5.6)))
     print(f"global score {summary['score']:.5f} over {len(rows)} scans; median {summary['median_seconds']:.0f} s")
     return 0
 
