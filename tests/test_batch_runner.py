@@ -7,6 +7,7 @@ scans go and what is written, not how good the phantoms are.
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -251,3 +252,43 @@ def test_unreachable_scheduler_is_a_one_line_error(tmp_path, skin_levels):
                             env={**os.environ, "DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT": "3s"})
     assert result.returncode == 2
     assert result.stderr.startswith(f"octcl invert: error: tcp://127.0.0.1:{port}: no Dask scheduler answers")
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make certificates")
+def test_tls_cluster_takes_only_clients_with_a_certificate(tmp_path):
+    """The recipe of docs/batch.md: a CA, one certificate, a TLS scheduler; plain clients are refused."""
+    import dask
+    from distributed import Security
+
+    from octcl.host.batch.runner import connect
+
+    def openssl(*arguments):
+        subprocess.run(["openssl", *arguments], cwd=tmp_path, check=True, capture_output=True)
+
+    openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=octcl-ca",
+            "-keyout", "ca.key", "-out", "ca.pem")
+    openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=octcl-cluster", "-keyout", "cluster.key",
+            "-out", "cluster.csr")
+    openssl("x509", "-req", "-in", "cluster.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-days", "2", "-out", "cluster.pem")
+    tls = ["--tls-ca-file", "ca.pem", "--tls-cert", "cluster.pem", "--tls-key", "cluster.key"]
+    scheduler = subprocess.Popen([DASK, "scheduler", "--protocol", "tls", "--host", "127.0.0.1", "--port", "0",
+                                  "--no-dashboard", "--scheduler-file", "scheduler.json", *tls],
+                                 cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        file = tmp_path / "scheduler.json"
+        address = wait_for(lambda: file.exists() and json.loads(file.read_text() or "{}").get("address"), 60,
+                           "TLS scheduler", scheduler)
+        assert address.startswith("tls://127.0.0.1:")
+        security = Security(tls_ca_file=str(tmp_path / "ca.pem"), tls_client_cert=str(tmp_path / "cluster.pem"),
+                            tls_client_key=str(tmp_path / "cluster.key"), require_encryption=True)
+        with connect(address, security=security) as (client, description):
+            assert description.startswith(f"cluster at {address}: 0 workers")
+            assert client.scheduler_info()["address"] == address
+        with dask.config.set({"distributed.comm.timeouts.connect": "5s"}), \
+                pytest.raises(ConnectionError, match="no Dask scheduler answers"):
+            with connect(address.replace("tls://", "tcp://")):
+                pass
+    finally:
+        scheduler.terminate()
+        scheduler.wait(timeout=20)

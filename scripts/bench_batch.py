@@ -1,0 +1,229 @@
+"""Benchmark batch inversion: the sequential path against Dask clusters on one machine.
+
+N synthetic targets (``octcl phantom skin`` seeds 0…N−1, rendered, saved as
+``.npy`` as the challenge ships real scans) are inverted with the same
+per-scan settings (time budget, seed, and the first ``--iterations`` Adam
+steps of the default schedule, so that every scan ends on its schedule and
+not on the clock, whatever the load) by each mode:
+
+- ``sequential``: one process inverting the scans one after the other with
+  :func:`octcl.host.invert.invert` (what ``octcl invert --targets`` did
+  before it ran on Dask);
+- ``local:WxT``: :func:`octcl.host.batch.invert_batch` on its embedded
+  local cluster of W worker processes × T threads (cluster start included
+  in the time);
+- ``cluster:WxT``: a real cluster on this machine, ``dask scheduler`` and W
+  ``dask worker --nthreads T`` processes started as subprocesses talking TCP
+  on 127.0.0.1, reached with ``scheduler=ADDRESS`` (their start is not
+  included).
+
+Per mode: scans per hour (scans / wall time of the whole batch), CPU use
+(CPU seconds of the inversions, all threads, over wall time × cores), the
+peak resident memory of each worker process (of the process, for
+sequential), and the global score (mean of the 8 per-component medians).
+Results go to ``--out``: ``bench_batch.json``, ``bench_batch.csv`` and
+``bench_batch.png`` (scans per hour and CPU use per mode).
+
+Example (about 15 minutes on two idle cores)::
+
+    python scripts/bench_batch.py --scans 4 --iterations 40 --out bench_batch
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from octcl._io import atomic_write
+from octcl.host.batch import invert_batch
+from octcl.host.batch.report import summarise
+from octcl.host.field import _available_cores
+from octcl.host.refine import RefineSchedule
+from octcl.phantom import Phantom
+from octcl.render import render
+
+DASK = str(Path(sys.executable).with_name("dask"))
+
+
+def first_iterations(iterations: int) -> RefineSchedule:
+    """The default schedule's first ``iterations`` Adam steps (main phases only, no restarts)."""
+    default, phases, left = RefineSchedule(), [], iterations
+    for phase in default.phases:
+        if left:
+            phases.append(dataclasses.replace(phase, iterations=min(phase.iterations, left)))
+            left -= phases[-1].iterations
+    return dataclasses.replace(default, phases=tuple(phases), restarts=())
+
+
+def make_targets(folder: Path, count: int) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for seed in range(count):
+        path = folder / f"skin_{seed}.npy"
+        if not path.exists():
+            np.save(path, render(Phantom.skin(seed)).levels)
+
+
+def sequential_child(targets: Path, out: Path, budget: float, seed: int, iterations: int) -> None:
+    """The sequential path: :func:`invert` on each target in turn in this process; rows as JSON on stdout."""
+    from octcl.host.invert import invert
+
+    rows = {}
+    for path in sorted(targets.glob("*.npy")):
+        cpu = time.process_time()
+        result = invert(np.load(path), out / f"{path.stem}.txt", budget, seed,
+                        schedule=first_iterations(iterations))
+        rows[path.name] = {"scan": path.name, "status": "inverted", **result.components,
+                           "seconds": result.seconds["total"], "peak_memory_mib": result.peak_memory_mib,
+                           "cpu_s": time.process_time() - cpu, "worker": "sequential", "error": None}
+    print(json.dumps(rows))
+
+
+def run_sequential(targets: Path, out: Path, budget: float, seed: int, iterations: int) -> dict:
+    """:func:`sequential_child` in a process of its own, so that its peak memory is its own."""
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, __file__, "--sequential-child", str(targets), str(out), str(budget),
+                           str(seed), str(iterations)], check=True, capture_output=True, text=True)
+    return {"rows": json.loads(done.stdout.splitlines()[-1]), "wall_s": time.monotonic() - started}
+
+
+def start_stock_cluster(folder: Path, workers: int, threads: int):
+    """``dask scheduler`` and ``workers`` × ``dask worker --nthreads threads`` on 127.0.0.1."""
+    from distributed import Client
+
+    file = folder / "scheduler.json"
+    processes = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                                   "--scheduler-file", str(file)], stderr=subprocess.DEVNULL)]
+    while not (file.exists() and file.read_text()):
+        time.sleep(0.2)
+    for index in range(workers):
+        processes.append(subprocess.Popen(
+            [DASK, "worker", "--scheduler-file", str(file), "--nthreads", str(threads), "--host", "127.0.0.1",
+             "--no-dashboard", "--local-directory", str(folder / f"w{index}")], stderr=subprocess.DEVNULL))
+    address = json.loads(file.read_text())["address"]
+    with Client(address) as client:
+        client.wait_for_workers(workers, timeout=180)
+    return address, processes
+
+
+def run_mode(mode: str, targets: Path, out: Path, budget: float, seed: int, iterations: int) -> dict:
+    if mode == "sequential":
+        return run_sequential(targets, out, budget, seed, iterations)
+    kind, shape = mode.split(":")
+    workers, threads = map(int, shape.split("x"))
+    processes, options = [], {"workers": workers, "threads_per_worker": threads}
+    if kind == "cluster":
+        address, processes = start_stock_cluster(Path(tempfile.mkdtemp(prefix="bench-cluster-")), workers, threads)
+        options = {"scheduler": address}
+    try:
+        started = time.monotonic()
+        summary = invert_batch(targets, out, budget, seed, force=True, schedule=first_iterations(iterations),
+                               **options)
+        wall = time.monotonic() - started
+    finally:
+        for process in reversed(processes):
+            process.terminate()
+            process.wait()
+    return {"rows": summary["scans"], "wall_s": wall}
+
+
+def measure(mode: str, result: dict, cores: int) -> dict:
+    rows = result["rows"]
+    summary = summarise(rows, {}, None, result["wall_s"])
+    peaks = {}
+    for row in rows.values():
+        peaks[row["worker"]] = max(peaks.get(row["worker"], 0.0), row["peak_memory_mib"])
+    return {"mode": mode, "scans": len(rows), "wall_s": result["wall_s"],
+            "scans_per_hour": 3600 * len(rows) / result["wall_s"],
+            "cpu_use_pct": 100 * sum(row["cpu_s"] for row in rows.values()) / (result["wall_s"] * cores),
+            "peak_memory_mib_per_worker": max(peaks.values()), "median_seconds_per_scan": summary["median_seconds"],
+            "score": summary["score"], "medians": summary["medians"],
+            "scan_scores": {name: row["mean"] for name, row in rows.items()}}
+
+
+def plot(path: Path, results: list[dict], title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(9, 3.6), dpi=100, layout="constrained")
+    speed, cpu = figure.subplots(1, 2)
+    modes = [r["mode"] for r in results]
+    bars = speed.bar(modes, [r["scans_per_hour"] for r in results], color="tab:blue")
+    speed.bar_label(bars, fmt="%.1f")
+    speed.set(ylabel="scans per hour", title=title)
+    bars = cpu.bar(modes, [r["cpu_use_pct"] for r in results], color="tab:orange")
+    cpu.bar_label(bars, fmt="%.0f %%")
+    cpu.set(ylabel="CPU use, % of all cores", ylim=(0, 100), title="CPU seconds of the inversions / (wall × cores)")
+    for axes in (speed, cpu):
+        axes.tick_params(axis="x", labelrotation=15)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    with atomic_write(path) as handle:
+        handle.write(buffer.getvalue())
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--sequential-child"]:
+        targets, out, budget, seed, iterations = argv[1:]
+        sequential_child(Path(targets), Path(out), float(budget), int(seed), int(iterations))
+        return 0
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scans", type=int, default=4, help="synthetic targets (default 4)")
+    parser.add_argument("--iterations", type=int, default=40, help="stage-3 Adam steps per scan (default 40)")
+    parser.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan, a ceiling (default 600)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--modes", nargs="+", default=["sequential", "local:1x2", "local:2x1", "cluster:2x1"],
+                        help="sequential, local:WxT, cluster:WxT (default: all four on two cores)")
+    parser.add_argument("--out", type=Path, default=Path("bench_batch"))
+    args = parser.parse_args(argv)
+
+    targets = args.out / "targets"
+    make_targets(targets, args.scans)
+    cores = _available_cores()
+    results = []
+    for mode in args.modes:
+        load = os.getloadavg()[0]
+        result = measure(mode, run_mode(mode, targets, args.out / mode.replace(":", "_"), args.time_budget,
+                                        args.seed, args.iterations), cores)
+        result["load_average_before"] = load
+        results.append(result)
+        print(f"{mode}: {result['scans_per_hour']:.1f} scans/h ({result['wall_s']:.0f} s), CPU "
+              f"{result['cpu_use_pct']:.0f} %, peak {result['peak_memory_mib_per_worker']:.0f} MiB/worker, "
+              f"score {result['score']:.6f} (load average before: {load:.1f})", flush=True)
+    baseline = results[0]["score"]
+    for result in results:
+        result["score_difference"] = result["score"] - baseline
+    meta = {"command": " ".join(["python", "scripts/bench_batch.py", *argv]), "cores": cores,
+            "scans": args.scans, "iterations": args.iterations, "time_budget_s": args.time_budget, "seed": args.seed}
+    with atomic_write(args.out / "bench_batch.json", "w") as handle:
+        json.dump({**meta, "results": results}, handle, indent=1)
+    columns = ["mode", "scans", "wall_s", "scans_per_hour", "cpu_use_pct", "peak_memory_mib_per_worker",
+               "median_seconds_per_scan", "score", "score_difference", "load_average_before"]
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(columns)
+    for result in results:
+        writer.writerow([result[c] for c in columns])
+    with atomic_write(args.out / "bench_batch.csv", "w") as handle:
+        handle.write(buffer.getvalue())
+    plot(args.out / "bench_batch.png", results,
+         f"{args.scans} scans, {args.iterations} iterations, {cores} cores")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
