@@ -51,8 +51,10 @@
  *
  * Scale. Amplitudes arrive as a_m = mantissa_m·2^{exponent_m} (frexp on the
  * host, mantissa in [½, 1); a zero amplitude has mantissa 0 and the exponent
- * NO_AMPLITUDE). The forward pass first finds e_i, the largest exponent
- * among the scatterers in A-scan i's contribution window, and computes the
+ * NO_AMPLITUDE). ascan_scale finds e_i, the largest exponent among the
+ * scatterers in A-scan i's contribution window (a pass over the scatterers,
+ * not over every A-scan's list, which cost the forward pass a third more
+ * time on a CPU), and the render kernels compute the
  * contributions relative to 2^{e_i}: b̃_m = exp(−d²/w0²)·mantissa_m·
  * 2^{exponent_m − e_i} ≤ 1. The A-scan comes out relative to 2^{e_i}
  * (scale_exponent[i]; the host multiplies by it in float64 and scales Ā by
@@ -128,26 +130,26 @@ typedef struct {
     real min_transmission;/* an A-scan stops once T ≤ this (0: only behind a mirror) */
 } ScannerParams;
 
-inline complex_t cmul(complex_t a, complex_t b) {
+static inline complex_t cmul(complex_t a, complex_t b) {
     return (complex_t)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
 }
 
-inline complex_t cconj_mul(complex_t a, complex_t b) { /* conj(a)·b */
+static inline complex_t cconj_mul(complex_t a, complex_t b) { /* conj(a)·b */
     return (complex_t)(a.x * b.x + a.y * b.y, a.x * b.y - a.y * b.x);
 }
 
 /* exp(−d²/w0²)·mantissa: the beam amplitude without its binary exponent. */
-inline real beam_mantissa(const ScannerParams p, real d2, real mantissa) {
+static inline real beam_mantissa(const ScannerParams p, real d2, real mantissa) {
     return exp(-d2 * p.inv_w0_sq) * mantissa;
 }
 
 /* t = min(b², 1), b = beam_mantissa·2^exponent: the absolute shadowing energy. */
-inline real shadow_energy(real beam, int exponent) {
+static inline real shadow_energy(real beam, int exponent) {
     return fmin(ldexp(beam * beam, 2 * exponent), (real)1);
 }
 
 /* ψ(t) = exp(β·(sqrt(1 − t²) − 1)) at t = (offset + k)·2/W, offset = first − p. */
-inline real spread_weight(real offset, int k, real beta) {
+static inline real spread_weight(real offset, int k, real beta) {
     const real t = (offset + k) * (real)(2.0 / SPREAD_WIDTH);
     return exp(beta * (sqrt(fmax(1 - t * t, (real)0)) - 1));
 }
@@ -157,12 +159,12 @@ inline real spread_weight(real offset, int k, real beta) {
  * 7th digit, and rounded float32 products would drift by ~1e−3. The
  * remainder of 1 − t is exact (Fast2Sum, t ≤ 1) and so is a product's
  * rounding error (fma), so T keeps ~1e−7 relative accuracy. */
-inline real2 one_minus(real t) { /* 1 − t as hi + lo */
+static inline real2 one_minus(real t) { /* 1 − t as hi + lo */
     const real hi = 1 - t;
     return (real2)(hi, (1 - hi) - t);
 }
 
-inline real2 dw_mul(real2 a, real2 b) {
+static inline real2 dw_mul(real2 a, real2 b) {
     const real product = a.x * b.x;
     const real error = fma(a.x, b.x, -product) + (a.x * b.y + a.y * b.x);
     const real hi = product + error;
@@ -223,13 +225,13 @@ __kernel void gather_entries(const ScannerParams p,
 }
 
 /* d² = (x_i − x_m)² + y_m² of A-scan i and an entry, from its bin offset. */
-inline real squared_distance(const ScannerParams p, int i, const Entry e) {
+static inline real squared_distance(const ScannerParams p, int i, const Entry e) {
     const real dx = (i - p.ascans_per_bin * (e.bin - 1)) * p.pitch_um - e.x_offset_um;
     return dx * dx + e.y_um * e.y_um;
 }
 
 /* A-scan i is in the entry's contribution window (decided on the host). */
-inline bool contributes(const Entry e, int i) {
+static inline bool contributes(const Entry e, int i) {
     return i >= e.window_first && i <= e.window_last;
 }
 
@@ -244,7 +246,7 @@ inline bool contributes(const Entry e, int i) {
 /* In-place radix-2 FFT of length 1 << log2n on a private array:
  * a[k] ← Σ_n a[n]·exp(sign·2πi·k·n/len). twiddle[k] = exp(−2πi·k/GRID),
  * k < GRID/2; a shorter transform strides through it. */
-void fft(complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
+static void fft(complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
     const int n = 1 << log2n;
     for (int i = 1, j = 0; i < n; ++i) { /* bit-reversal permutation */
         int bit = n >> 1;
@@ -267,7 +269,7 @@ void fft(complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
 
 /* The W spreading weights of a scatterer as one vector (zero past W), so
  * that the spreading loop vectorises on a CPU. */
-inline taps_t spread_weights(real offset, real beta) {
+static inline taps_t spread_weights(real offset, real beta) {
 #if TAP_COUNT == 8
     const taps_t lane = (taps_t)(0, 1, 2, 3, 4, 5, 6, 7);
 #else
@@ -279,22 +281,33 @@ inline taps_t spread_weights(real offset, real beta) {
 }
 
 /*
+ * Scale: scale_exponent[i] = e_i, the largest exponent among the scatterers
+ * whose contribution window [first, last] holds A-scan i (NO_AMPLITUDE where
+ * none), one work-item per scatterer. A maximum does not depend on the order
+ * of the atomic updates, so the result is deterministic. scale_exponent must
+ * hold NO_AMPLITUDE on entry.
+ */
+__kernel void ascan_scale(__global const int2 *window, __global const int *exponent,
+                          __global int *scale_exponent, const int count) {
+    const int m = get_global_id(0);
+    if (m >= count || exponent[m] == NO_AMPLITUDE) return;
+    for (int i = window[m].x; i <= window[m].y; ++i) atomic_max(&scale_exponent[i], exponent[m]);
+}
+
+/*
  * Forward: complex A-scans a_scan[i·NZ + n], relative to 2^{scale_exponent[i]}.
  * If slot_data is not null, T of each visited pair within reach is stored
  * for the adjoint and the number of visited entries goes to stop_position.
  */
 __kernel void render_forward(const ScannerParams p,
                              SCENE_ARGUMENTS,
-                             __global complex_t *a_scan, __global int *scale_exponent,
+                             __global complex_t *a_scan, __global const int *scale_exponent,
                              __global complex_t *slot_data, __global int *stop_position) {
     const int i = get_global_id(0);
     if (i >= p.a_scans) return;
     const int list = i / p.ascans_per_bin + 1; /* bins are shifted by one */
     const int begin = list_start[list], end = list_start[list + 1];
-    int scale = NO_AMPLITUDE;
-    for (int j = begin; j < end; ++j)
-        if (contributes(entry[j], i)) scale = max(scale, entry[j].exponent);
-    scale_exponent[i] = scale;
+    const int scale = scale_exponent[i];
     __global complex_t *slot = slot_data + (size_t)(i % p.ascans_per_bin) * p.entries;
 
     complex_t grid[GRID];
@@ -400,7 +413,7 @@ __kernel void render_adjoint(const ScannerParams p,
 /* In-place radix-2 FFT of length 1 << log2n of a local array, the work-group
  * sharing each stage's butterflies (same transform as fft above). Call with
  * every work-item of the group; returns after a barrier. */
-void fft_local(__local complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
+static void fft_local(__local complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
     const int n = 1 << log2n, lid = get_local_id(0);
     for (int i = lid; i < n; i += WG_SIZE) { /* bit reversal: disjoint swaps */
         int reversed = 0;
@@ -424,7 +437,7 @@ void fft_local(__local complex_t *a, int log2n, int sign, __global const complex
 
 /* First list entry in [lo, hi) whose first tap is ≥ value (taps ascend along
  * a list, since entries are in depth order and p_m grows with z_m). */
-inline int first_tap_at_least(__global const Entry *entry, int lo, int hi, int value) {
+static inline int first_tap_at_least(__global const Entry *entry, int lo, int hi, int value) {
     while (lo < hi) {
         const int mid = lo + (hi - lo) / 2;
         if (entry[mid].first_tap < value) lo = mid + 1; else hi = mid;
@@ -445,7 +458,7 @@ inline int first_tap_at_least(__global const Entry *entry, int lo, int hi, int v
 __kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
 void render_forward_group(const ScannerParams p,
                           SCENE_ARGUMENTS,
-                          __global complex_t *a_scan, __global int *scale_exponent,
+                          __global complex_t *a_scan, __global const int *scale_exponent,
                           __global complex_t *slot_data, __global int *stop_position) {
     const int i = get_group_id(0), lid = get_local_id(0);
     const int list = i / p.ascans_per_bin + 1;
@@ -453,20 +466,11 @@ void render_forward_group(const ScannerParams p,
     __global complex_t *slot = slot_data + (size_t)(i % p.ascans_per_bin) * p.entries;
     __local real2 scan[WG_SIZE];
     __local complex_t grid[GRID];
-    __local int visited, largest;
+    __local int visited;
 
-    if (lid == 0) {
-        visited = end - begin;
-        largest = NO_AMPLITUDE;
-    }
+    if (lid == 0) visited = end - begin;
     barrier(CLK_LOCAL_MEM_FENCE);
-    int own_largest = NO_AMPLITUDE;
-    for (int j = begin + lid; j < end; j += WG_SIZE)
-        if (contributes(entry[j], i)) own_largest = max(own_largest, entry[j].exponent);
-    atomic_max(&largest, own_largest);
-    barrier(CLK_LOCAL_MEM_FENCE);
-    const int scale = largest;
-    if (lid == 0) scale_exponent[i] = scale;
+    const int scale = scale_exponent[i];
     real2 transmission = (real2)(1, 0); /* T before the tile, the same in every work-item */
     for (int base = begin; base < end; base += WG_SIZE) {
         const int j = base + lid;

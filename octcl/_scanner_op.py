@@ -196,6 +196,7 @@ class ScannerKernels:
             self._render_adjoint = cl.Kernel(program, "render_adjoint")
         self._reduce_slots = cl.Kernel(program, "reduce_slots")
         self._gather_entries = cl.Kernel(program, "gather_entries")
+        self._ascan_scale = cl.Kernel(program, "ascan_scale")
         size = np.zeros(1, np.int32)
         cl.Kernel(program, "entry_size")(self.queue, (1,), None, self._buffer("entry_size", 4))
         cl.enqueue_copy(self.queue, size, self._buffers["entry_size"][0])
@@ -319,6 +320,11 @@ class ScannerKernels:
                                      "entry_scatterer", "list_start", "x_offset_um", "y_um", "bin", "window",
                                      "mantissa", "exponent", "first_tap", "tap_offset", "phase")),
                                  entries, entry_index)
+        scale_exponent = self._buffer("scale_exponent", self.config.a_scans * 4)
+        self._cl.enqueue_fill_buffer(self.queue, scale_exponent, np.int32(NO_AMPLITUDE), 0, self.config.a_scans * 4)
+        if self.count:
+            self._ascan_scale(self.queue, (self.count,), None, self._buffers["window"][0],
+                              self._buffers["exponent"][0], scale_exponent, np.int32(self.count))
         self._slots_ready = False
 
     def _lay_out_laterally(self, x_um: np.ndarray, y_um: np.ndarray) -> _LateralLayout:
@@ -380,7 +386,7 @@ class ScannerKernels:
         nz, nx = self.config.shape
         itemsize = np.dtype(self.complex).itemsize
         a_scan = self._buffer("a_scan", nz * nx * itemsize)
-        scale_exponent = self._buffer("scale_exponent", nx * 4)
+        scale_exponent = self._buffers["scale_exponent"][0]
         slot_data = stop_position = None
         if for_adjoint or self.variant == "work-group":  # the work-group variant gathers from the slots
             slot_data = self._buffer("slots", self.ascans_per_bin * self.entries * itemsize)
@@ -392,9 +398,9 @@ class ScannerKernels:
         self._cl.enqueue_copy(self.queue, result, a_scan)
         self._cl.enqueue_copy(self.queue, exponent, scale_exponent)
         # The unit of A-scan i is 2^{e_i} (0 for an A-scan with no amplitude).
-        self._ascan_scale = np.ldexp(1.0, exponent)
+        self._ascan_unit = np.ldexp(1.0, exponent)
         self._slots_ready = for_adjoint
-        return result.T.astype(np.complex128) * self._ascan_scale
+        return result.T.astype(np.complex128) * self._ascan_unit
 
     def adjoint(self, a_scan_bar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(∂L/∂u, ∂L/∂z) per scatterer in input order, given Ā = ∂L/∂Re A + i·∂L/∂Im A."""
@@ -402,7 +408,7 @@ class ScannerKernels:
         if not self._slots_ready:
             raise RuntimeError("adjoint() needs forward(for_adjoint=True) first")
         # The kernels' A-scans are A/2^{e_i}, so their adjoint input is Ā·2^{e_i}.
-        a_bar = np.asarray(a_scan_bar) * self._ascan_scale
+        a_bar = np.asarray(a_scan_bar) * self._ascan_unit
         self._fill("a_scan_bar", np.ascontiguousarray(a_bar.T, dtype=self.complex))
         self._launch(self._render_adjoint, self._params, *self._scene_arguments(),
                      self._buffers["a_scan_bar"][0], self._buffers["scale_exponent"][0],
