@@ -43,7 +43,7 @@ def _cmd_render(args) -> int:
         from ._scanner_op import KernelSettings
 
         settings = KernelSettings(spread_width=args.spread_width, shadow_radius_sq=args.shadow_radius_sq,
-                                  double=args.double)
+                                  double=args.double, variant=args.kernel_variant)
     with ProgressBar(f"render {Path(args.phantom).name}") as bar:
         bar.update(0, f"{len(phantom):,} scatterers, {args.backend}", force=True)
         rendering = render(phantom, config, backend=args.backend, device=args.device, settings=settings)
@@ -203,7 +203,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spread-width", type=int, default=8, help="kernel accuracy: spreading width W (2-16)")
     p.add_argument("--shadow-radius-sq", type=float, default=20.0,
                    help="kernel accuracy: shadowing reach R² in w0² (≥ 3; 20 is exact)")
-    p.add_argument("--double", action="store_true", help="float64 kernels (device must support fp64)")
+    p.add_argument("--double", action="store_true",
+                   help="float64 kernels (device must support fp64); float32 already renders every legal "
+                        "phantom, energies 1e-300 to 100 %%, as the float64 reference does")
+    p.add_argument("--kernel-variant", choices=("auto", "work-item", "work-group"), default="auto",
+                   help="one work-item or one work-group per A-scan (default: work-group on GPUs, "
+                        "work-item on CPUs)")
 
     p = command("maps", "write the official OAC, SC and RSC maps of a B-scan", _cmd_maps)
     p.add_argument("scan", help="B-scan PNG")

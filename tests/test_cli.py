@@ -77,6 +77,20 @@ def test_bad_input_exits_2_with_one_line_reason(tmp_path, capsys, argv, message)
     assert message in err and err.count("\n") == 1 and err.startswith("octcl ")
 
 
+def test_render_kernel_variants_agree(tmp_path, capsys):
+    """Both kernel variants, chosen on the command line, draw the same B-scan."""
+    phantom = tmp_path / "skin.txt"
+    Phantom.skin(3).save(phantom)
+    images = {}
+    for variant in ("work-item", "work-group"):
+        assert run(capsys, "render", phantom, "-o", tmp_path / f"{variant}.png", "--kernel-variant", variant)[0] == 0
+        images[variant] = read_png_rgb(tmp_path / f"{variant}.png").astype(int)
+    assert np.mean(images["work-item"] == images["work-group"]) > 0.999
+    with pytest.raises(SystemExit) as exit_info:
+        run(capsys, "render", phantom, "-o", tmp_path / "x.png", "--kernel-variant", "warp")
+    assert exit_info.value.code == 2 and "'warp'" in capsys.readouterr().err
+
+
 def test_failed_render_keeps_the_previous_output(tmp_path, capsys):
     scan = tmp_path / "scan.png"
     scan.write_bytes(b"previous output")
