@@ -50,8 +50,10 @@ Fields reported per kernel (``--json``: one object a line):
 
 NVIDIA occupancy, the rules of ``cuda_occupancy.h`` (CUDA Toolkit, the
 occupancy calculator's source) and the CUDA C++ Programming Guide's table of
-compute capability 8.0: for a block of B threads (``--block-size``, 256 by
-default; octcl leaves the work-group size to the driver) and r registers,
+compute capability 8.0: for a block of B threads (the kernel's
+``reqd_work_group_size`` where it has one, as the work-group variant's
+kernels do; otherwise ``--block-size``, 256 by default, since octcl leaves
+the work-group size to the driver) and r registers,
 s bytes of shared memory per thread block,
 
     warps per block   w = ⌈B / 32⌉
@@ -463,19 +465,26 @@ def compile_nvidia(build: Build, target: Target, tools: Tools, source: Path, wor
         except CompileError as exc:
             raise CompileError(f"{what}: {exc}") from None
         reported_by = f"{tools.clang_version} (PTX declarations; no ptxas)"
+    # A kernel declared with reqd_work_group_size(N, 1, 1) always runs in
+    # blocks of N (clang-14 does not carry the attribute into PTX, so it is
+    # read from the source, N resolved through the build's -D defines).
+    defines = dict(option[2:].split("=", 1) for option in build.options if option.startswith("-D"))
+    required = {name: int(defines.get(size, size)) for size, name in re.findall(
+        r"reqd_work_group_size\(\s*(\w+)\s*,\s*1\s*,\s*1\s*\)\)\)\s*void\s+(\w+)", source.read_text())}
     records = []
     for kernel, entry in report.items():
         registers = entry.get("registers")
+        kernel_block_size = required.get(kernel, block_size)
         records.append({
             "kernel": kernel,
             "private_bytes": entry["private_bytes"],
             "registers": registers,
             "occupancy": None if registers is None else nvidia_occupancy(
-                registers, entry["shared_bytes"], block_size, NVIDIA_LIMITS[target.name]),
+                registers, entry["shared_bytes"], kernel_block_size, NVIDIA_LIMITS[target.name]),
             "shared_bytes": entry["shared_bytes"],
             "spill_store_bytes": entry.get("spill_store_bytes"),
             "spill_load_bytes": entry.get("spill_load_bytes"),
-            "block_size": block_size,
+            "block_size": kernel_block_size,
             "reported_by": reported_by,
         })
     return records

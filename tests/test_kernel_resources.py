@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from octcl._runtime import build_options
-from octcl._scanner_op import KernelSettings, program_defines
+from octcl._scanner_op import WORK_GROUP_SIZE, KernelSettings, program_defines
 from octcl.config import DEFAULT_CONFIG
 
 REPO = Path(__file__).resolve().parents[1]
@@ -103,6 +103,14 @@ def test_every_kernel_compiles_and_reports_its_private_arrays(compilers):
             assert found[("render_forward", "sm_80", precision, width)]["private_bytes"] >= grid * complex_bytes
             assert found[("render_adjoint", "sm_80", precision, width)]["private_bytes"] >= 2 * grid * complex_bytes
             assert found[("reduce_slots", "sm_80", precision, width)]["private_bytes"] == 0
+            # The work-group variant keeps its grids in local memory: nothing
+            # private, the grid (and the adjoint's second grid) in shared memory,
+            # and blocks of the kernel's required work-group size.
+            for kernel, grids in (("render_forward_group", 1), ("render_adjoint_group", 2)):
+                record = found[(kernel, "sm_80", precision, width)]
+                assert record["private_bytes"] == 0
+                assert record["shared_bytes"] >= grids * grid * complex_bytes
+                assert record["block_size"] == WORK_GROUP_SIZE
 
 
 BROKEN_KERNELS = {
