@@ -23,13 +23,13 @@ STRUCT_WEIGHTS = LossWeights(pixel=1.0, sc_l1=0, oac_l1=0, oac_lpips=0, oac_msss
 
 
 @pytest.fixture(scope="module")
-def layers_path(shared_data):
-    return shared_data / "official" / "Scan_Exp2_Layers_A.png"
+def layers_path(official_data):
+    return official_data / "Scan_Exp2_Layers_A.png"
 
 
 @pytest.fixture(scope="module")
-def uniform_levels(shared_data):
-    return read_png_rgb(shared_data / "official" / "Scan_Exp1_Uniform_A.png")[..., 0].astype(int)
+def uniform_levels(official_data):
+    return read_png_rgb(official_data / "Scan_Exp1_Uniform_A.png")[..., 0].astype(int)
 
 
 @pytest.fixture(scope="module")
