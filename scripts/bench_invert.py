@@ -1,9 +1,11 @@
 """Benchmark ``octcl.host.invert`` on a development set of B-scans.
 
-The set: the official scans in ``../shared/data/official`` (Uniform A and B,
-Layers A), the real scan ``../shared/data/real/orange.png`` and, with
-``--skin N``, N skin-like synthetic targets rendered from
-:meth:`octcl.phantom.Phantom.skin`. Each scan is inverted in its own
+The set: the official scans in the repository's ``data/official`` (Uniform A
+and B, Layers A), the real scan ``../shared/data/real/orange.png`` beside the
+repository and, with ``--skin N``, N skin-like synthetic targets rendered from
+:meth:`octcl.phantom.Phantom.skin`. The real scan may not be redistributed, so
+the repository does not carry it (``data/README.md``); without it the set goes
+on without ``orange``, and says so. Each scan is inverted in its own
 process (so the peak memory is that scan's) with the given time budget.
 The written phantom is then rendered again with the OpenCL scanner and
 scored exactly against the target, which is the score the file would get.
@@ -43,14 +45,18 @@ from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.render import render
 from octcl.scorer import COMPONENTS
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+REPOSITORY = Path(__file__).resolve().parents[1]
+OFFICIAL_DIR = REPOSITORY / "data" / "official"
 OFFICIAL = ("Scan_Exp1_Uniform_A", "Scan_Exp1_Uniform_B", "Scan_Exp2_Layers_A")
+ORANGE = REPOSITORY.parent / "shared" / "data" / "real" / "orange.png"
+ORANGE_MISSING = f"orange: {ORANGE} not found (a real scan the repository may not carry; see data/README.md)"
 
 
 def development_set(out: Path, skin: int) -> dict[str, Path]:
-    """{name: target PNG}; skin targets are rendered into ``out/targets``."""
-    targets = {name: DATA / "official" / f"{name}.png" for name in OFFICIAL}
-    targets["orange"] = DATA / "real" / "orange.png"
+    """{name: target PNG}; skin targets are rendered into ``out/targets``; orange only if present."""
+    targets = {name: OFFICIAL_DIR / f"{name}.png" for name in OFFICIAL}
+    if ORANGE.is_file():
+        targets["orange"] = ORANGE
     for seed in range(skin):
         path = out / "targets" / f"skin_{seed}.png"
         if not path.exists():
@@ -133,6 +139,11 @@ def main(argv=None) -> int:
 
     targets = development_set(args.out, args.skin)
     names = args.scans or list(targets)
+    if "orange" not in targets:
+        if not args.scans:
+            print(f"{ORANGE_MISSING}: the set goes on without it", file=sys.stderr)
+        elif "orange" in args.scans:
+            parser.error(ORANGE_MISSING)
     unknown = sorted(set(names) - set(targets))
     if unknown:
         parser.error(f"unknown scans {unknown}; known: {sorted(targets)}")

@@ -18,14 +18,14 @@ def run(capsys, *argv):
     return status, captured.out, captured.err
 
 
-def test_phantom_render_maps_score_reproduce_an_official_scan(tmp_path, capsys, shared_data):
+def test_phantom_render_maps_score_reproduce_an_official_scan(tmp_path, capsys, official_data):
     phantom = tmp_path / "layers.txt"
     assert run(capsys, "phantom", "baseline", "--kind", "layers", "--seed", 42, "-o", phantom)[0] == 0
     scan = tmp_path / "layers.png"
     assert run(capsys, "render", phantom, "-o", scan)[0] == 0
     status, out, _ = run(capsys, "maps", scan, "--json")
     assert status == 0 and sorted(json.loads(out)) == ["OAC", "RSC", "SC"]
-    official = shared_data / "official" / "Scan_Exp2_Layers_A.png"
+    official = official_data / "Scan_Exp2_Layers_A.png"
     status, out, _ = run(capsys, "score", official, scan, "--json")
     result = json.loads(out)
     assert status == 0 and set(result) >= {"msssim_Struct", "one_minus_lpips_RSC", "mean"}
@@ -34,13 +34,12 @@ def test_phantom_render_maps_score_reproduce_an_official_scan(tmp_path, capsys, 
     assert np.mean(ours == theirs) > 0.999
 
 
-def test_score_directories_writes_csv(tmp_path, capsys, shared_data):
+def test_score_directories_writes_csv(tmp_path, capsys, official_data):
     refs, preds = tmp_path / "refs", tmp_path / "preds"
     refs.mkdir(), preds.mkdir()
-    official = shared_data / "official"
     for name in ("Scan_Exp1_Uniform_A.png",):
-        (refs / name).write_bytes((official / name).read_bytes())
-        (preds / name).write_bytes((official / "Scan_Exp1_Uniform_B.png").read_bytes())
+        (refs / name).write_bytes((official_data / name).read_bytes())
+        (preds / name).write_bytes((official_data / "Scan_Exp1_Uniform_B.png").read_bytes())
     status, out, _ = run(capsys, "score", "--refs", refs, "--preds", preds, "--csv", tmp_path / "s.csv")
     assert status == 0 and "global score" in out
     lines = (tmp_path / "s.csv").read_text().splitlines()

@@ -39,8 +39,8 @@ def test_target_display_of_levels_the_scanner_never_writes():
     assert np.all((display[1:] >= np.arange(1, 256) / 256) & (display[1:] <= np.arange(3, 258) / 256))
 
 
-def test_target_levels_of_a_read_scan(shared_data):
-    path = shared_data / "official" / "Scan_Exp1_Uniform_A.png"
+def test_target_levels_of_a_read_scan(official_data):
+    path = official_data / "Scan_Exp1_Uniform_A.png"
     levels = target_levels(read_scan(path))
     assert levels.dtype == np.uint8
     assert np.array_equal(levels, read_png_rgb(path)[..., 0])
@@ -106,8 +106,8 @@ def test_torch_operator_and_pseudo_inverse():
 
 
 @pytest.fixture(scope="module")
-def uniform_levels(shared_data):
-    return target_levels(read_scan(shared_data / "official" / "Scan_Exp1_Uniform_A.png"))
+def uniform_levels(official_data):
+    return target_levels(read_scan(official_data / "Scan_Exp1_Uniform_A.png"))
 
 
 def test_fit_field_reduces_the_loss(uniform_levels):

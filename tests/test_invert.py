@@ -22,8 +22,8 @@ SHORT = RefineSchedule(phases=(Phase(4, 0.01, 0.02),), restarts=(), score_every=
 
 
 @pytest.fixture(scope="module")
-def layers_path(shared_data):
-    return shared_data / "official" / "Scan_Exp2_Layers_A.png"
+def layers_path(official_data):
+    return official_data / "Scan_Exp2_Layers_A.png"
 
 
 def _assert_contract(path):

@@ -27,17 +27,16 @@ TWIN_MAX_LEVEL_DIFFERENCE = 2
 
 
 @pytest.fixture(scope="module")
-def official(shared_data):
+def official(official_data):
     """Per official scan: (scan path, float32 scan, {map: official uint8 levels})."""
-    folder = shared_data / "official"
     cases = {}
     for stem in OFFICIAL_SCANS:
         official_levels = {}
         for name in maps.MAP_NAMES:
-            rgb = read_png_rgb(folder / f"{stem}_{name}.png")
+            rgb = read_png_rgb(official_data / f"{stem}_{name}.png")
             assert (rgb == rgb[..., :1]).all(), f"{stem}_{name}.png is not grey"
             official_levels[name] = rgb[..., 0]
-        path = folder / f"{stem}.png"
+        path = official_data / f"{stem}.png"
         cases[stem] = (path, read_scan(path), official_levels)
     return cases
 
