@@ -417,9 +417,10 @@ def _parse_scientific_rows(data: bytes) -> np.ndarray | None:
     exponent = digit[:, e + 2].astype(np.int64) * 10 + digit[:, e + 3]
     power = np.where(token[:, e + 1] == ord("-"), -exponent, exponent) - decimals
     values = _times_power_of_ten(significand.astype(np.float64), power)
-    for index in np.flatnonzero(np.abs(power) > _EXACT_POWER):
+    values[token[:, 0] == ord("-")] *= -1
+    for index in np.flatnonzero(np.abs(power) > _EXACT_POWER):  # float() reads the sign too
         values[index] = float(padded[starts[index]:ends[index]])
-    return np.where(token[:, 0] == ord("-"), -values, values).reshape(-1, 4)
+    return values.reshape(-1, 4)
 
 
 def _parse_rows_exact(path: Path, data: bytes, config: ScannerConfig, truncate: bool,
@@ -583,17 +584,19 @@ def _round_significant(values: np.ndarray, digits: int) -> np.ndarray:
     """Round to ``digits`` significant digits exactly as ``'%.{digits-1}e'`` prints and ``float()`` reads.
 
     From :func:`_decimal_digits`: v = ±m·10^p is read back by one correctly
-    rounded operation where |p| ≤ 22 (see :func:`_parse_scientific`); the
-    uncertain and out-of-range values go through Python's text.
+    rounded operation where |p| ≤ 22 (see :func:`_parse_scientific_rows`);
+    the uncertain and out-of-range values go through Python's text. Any
+    shape; the result has the shape of ``values``.
     """
-    values = np.asarray(values, dtype=np.float64)
+    shape = np.shape(values)
+    values = np.asarray(values, dtype=np.float64).reshape(-1)
     significand, exponent, certain = _decimal_digits(values, digits)
     power = exponent - (digits - 1)
     rounded = np.copysign(_times_power_of_ten(significand, power), values)
     fmt = f"%.{digits - 1}e"
     for index in np.flatnonzero(~certain | (np.abs(power) > _EXACT_POWER)):
         rounded[index] = float(fmt % values[index])
-    return rounded
+    return rounded.reshape(shape)
 
 
 __all__ = ["Phantom", "PhantomError", "TARGET_ROWS", "CONTRACT_Y_LIMIT_UM"]

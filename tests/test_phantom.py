@@ -2,14 +2,20 @@
 
 import os
 import re
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 import octcl._io
 import octcl.phantom
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
-from octcl.phantom import MAX_ROW_BYTES, Phantom, PhantomError, _format_rows, _parse_rows_exact, _round_significant
+from octcl.phantom import (MAX_ROW_BYTES, Phantom, PhantomError, _format_rows, _parse_rows, _parse_rows_exact,
+                           _round_significant)
 
 SMALL = ScannerConfig(max_scatterers=5)
 
@@ -123,6 +129,44 @@ def test_save_load_round_trip_reads_back_the_printed_values(tmp_path, digits):
     loaded = Phantom.load(path)
     np.testing.assert_array_equal(loaded.as_array(), expected)
     assert np.array_equal(np.signbit(loaded.as_array()), np.signbit(expected))
+
+
+def rows_of(*columns):
+    """Hypothesis: an (N, 4) float64 array whose columns are drawn from the given float strategies."""
+    return st.integers(1, 40).flatmap(lambda count: st.tuples(
+        *(arrays(np.float64, count, elements=column) for column in columns)).map(lambda c: np.stack(c, axis=1)))
+
+
+@settings(max_examples=300, deadline=None)
+@given(rows=rows_of(*[st.floats(width=64)] * 4), digits=st.integers(1, 17))
+@example(rows=np.array([[0.0, 0.0, 0.0, -7.46141353e-39]]), digits=1)  # a negative value beyond 1e±22
+def test_any_float_is_written_as_python_writes_it_and_read_back_as_float_reads_it(rows, digits):
+    spec = f".{digits - 1}e"
+    tokens = [[format(v, spec) for v in row] for row in rows.tolist()]
+    text = _format_rows(rows, digits)
+    assert text.decode() == "".join(" ".join(row) + "\n" for row in tokens)
+    values = _parse_rows(text)
+    if np.isfinite(rows).all():  # 'nan' and 'inf' are left to the line-by-line reader, which refuses them
+        expected = np.array([[float(token) for token in row] for row in tokens])
+        assert values.tobytes() == expected.tobytes()  # bit for bit, signed zeros included
+    else:
+        assert values is None
+
+
+IN_RANGE = (st.floats(-1536, 1536), st.floats(-10, 10), st.floats(0, 1536), st.floats(0, 100))
+
+
+@settings(max_examples=150, deadline=None)
+@given(rows=rows_of(*IN_RANGE), digits=st.integers(4, 17))  # 3 digits write 1536 as 1.54e+03
+@example(rows=np.array([[-1e-30, -2.5e-300, 5e-324, 99.99609375]]), digits=6)
+def test_save_load_round_trip_is_exact_at_the_written_precision(rows, digits):
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "p.txt"
+        Phantom(*rows.T).save(path, significant_digits=digits)
+        loaded = Phantom.load(path).as_array()
+    assert loaded.tobytes() == _round_significant(rows, digits).tobytes()
+    relative = np.abs(loaded - rows) / np.maximum(np.abs(rows), np.finfo(float).tiny)
+    assert relative.max() <= 0.5 * 10.0 ** (1 - digits) * (1 + 1e-15)  # half a unit in the last digit
 
 
 def test_byte_order_mark_and_crlf_line_ends_are_read(tmp_path):
@@ -294,6 +338,48 @@ def test_bad_row_error_names_file_line_and_value(tmp_path, line, fragments):
     assert message.startswith(f"{path}:4:"), message
     for fragment in fragments:
         assert fragment in message, message
+
+
+def octcl_file_with(tmp_path, line_number, line, rows=3000):
+    """A phantom as octcl writes it (``rows`` rows, 6 digits) with line ``line_number`` replaced by ``line``."""
+    rng = np.random.default_rng(line_number)
+    path = tmp_path / "written.txt"
+    Phantom(rng.uniform(-1536, 1536, rows), rng.uniform(-3, 3, rows), rng.uniform(0, 1536, rows),
+            rng.uniform(0, 100, rows)).save(path)
+    lines = path.read_bytes().split(b"\n")
+    lines[line_number - 1] = line.encode()
+    path.write_bytes(b"\n".join(lines))
+    return path
+
+
+@pytest.mark.parametrize("line, message", [
+    ("1.00000e+00 2.00000e+00 3.00000e+00", "expected 4 columns (x y z E), found 3: '1.00000e+00 2.00000e+00 3.00000e+00'"),
+    ("1.00000e+00 2.00000e+00 3.00000e+00 4.00000e+00 5.00000e+00",
+     "expected 4 columns (x y z E), found 5: '1.00000e+00 2.00000e+00 3.00000e+00 4.00000e+00 5.00000e+00'"),
+    ("1.00000e+00 2.0000O0e+00 3.00000e+00 4.00000e+00", "y = '2.0000O0e+00' is not a number"),
+    ("1.00000e+00 2.00000e+00 3.00000e+00 nan", "E = 'nan' is not finite"),
+    ("1.00000e+400 2.00000e+00 3.00000e+00 4.00000e+00", "x = '1.00000e+400' is not finite"),
+    ("1.00000e+00 2.00000e+00 3.00000e+00 -1.00000e-02", "E = -1.00000e-02 outside [0, 100]"),
+    ("1.00000e+00 2.00000e+00 1.53601e+03 4.00000e+00", "z = 1.53601e+03 outside [0, 1536]"),
+    ("-1.53700e+03 2.00000e+00 3.00000e+00 4.00000e+00", "x = -1.53700e+03 outside [-1536, 1536]"),
+    ("1.00000e+00 1.05000e+01 3.00000e+00 4.00000e+00", "y = 1.05000e+01 outside [-10, 10]"),
+])
+def test_errors_in_files_the_fast_reader_takes_keep_file_line_and_value(tmp_path, line, message):
+    """An octcl-written file goes to the fast reader; a bad row in it is still reported as before."""
+    path = octcl_file_with(tmp_path, 2345, line)
+    with pytest.raises(PhantomError) as caught:
+        Phantom.load(path)
+    assert str(caught.value) == f"{path}:2345: {message}"
+
+
+def test_too_many_rows_in_a_file_the_fast_reader_takes_keeps_its_message(tmp_path):
+    path = octcl_file_with(tmp_path, 1, "# header", rows=3001)
+    with pytest.raises(PhantomError) as caught:
+        Phantom.load(path, config=ScannerConfig(max_scatterers=2999))
+    assert str(caught.value) == (f"{path}: 3,000 rows, but the scanner reads only the first 2,999 (number of "
+                                 "scatterers in b-scan); use --truncate (Phantom.load(..., truncate=True)) "
+                                 "to keep those")
+    assert len(Phantom.load(path, config=ScannerConfig(max_scatterers=3000))) == 3000
 
 
 def test_range_limits_themselves_are_accepted(tmp_path):
