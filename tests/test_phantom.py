@@ -44,7 +44,7 @@ def as_written(value):
 
 
 # ---------------------------------------------------------------- round trip
-def test_save_then_load_keeps_six_significant_digits(tmp_path):
+def test_save_writes_eight_significant_digits_by_default(tmp_path):
     rng = np.random.default_rng(0)
     original = Phantom(rng.uniform(-1536, 1536, 200), rng.uniform(-10, 10, 200),
                        rng.uniform(0, 1536, 200), rng.uniform(0, 100, 200))
@@ -52,20 +52,21 @@ def test_save_then_load_keeps_six_significant_digits(tmp_path):
     original.save(path)
     loaded = Phantom.load(path)
     assert len(loaded) == 200
-    # 6 significant digits: relative error at most half a unit in the 6th digit.
-    np.testing.assert_allclose(loaded.as_array(), original.as_array(), rtol=5.000001e-6, atol=0)
+    # 8 significant digits: relative error at most half a unit in the 8th digit.
+    np.testing.assert_allclose(loaded.as_array(), original.as_array(), rtol=5.000001e-8, atol=0)
     assert not np.array_equal(loaded.as_array(), original.as_array())  # it did round
     first = path.read_text().splitlines()[0].split()
     assert len(first) == 4
-    assert all(re.fullmatch(r"-?\d\.\d{5}e[+-]\d\d", token) for token in first), first
+    assert all(re.fullmatch(r"-?\d\.\d{7}e[+-]\d\d", token) for token in first), first
 
 
-def test_save_then_load_is_exact_for_six_digit_values(tmp_path):
+def test_save_then_load_is_exact_for_values_with_fewer_digits(tmp_path):
     original = Phantom([-1536.0, 1.23456e-3, 1536.0], [-10.0, 0.0, 2.5],
                        [0.0, 1234.56, 1536.0], [0.0, 0.01, 100.0])
     path = tmp_path / "p.txt"
-    original.save(path)
-    assert np.array_equal(Phantom.load(path).as_array(), original.as_array())
+    for digits in (6, 8):
+        original.save(path, significant_digits=digits)
+        assert np.array_equal(Phantom.load(path).as_array(), original.as_array())
 
 
 def test_load_accepts_whitespace_commas_blank_and_comment_lines(tmp_path):
@@ -345,7 +346,7 @@ def octcl_file_with(tmp_path, line_number, line, rows=3000):
     rng = np.random.default_rng(line_number)
     path = tmp_path / "written.txt"
     Phantom(rng.uniform(-1536, 1536, rows), rng.uniform(-3, 3, rows), rng.uniform(0, 1536, rows),
-            rng.uniform(0, 100, rows)).save(path)
+            rng.uniform(0, 100, rows)).save(path, significant_digits=6)
     lines = path.read_bytes().split(b"\n")
     lines[line_number - 1] = line.encode()
     path.write_bytes(b"\n".join(lines))
