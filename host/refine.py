@@ -375,7 +375,7 @@ class _Refiner:
         np.clip(log_energy, self.schedule.min_log_energy, math.log(MAX_ENERGY_PCT), out=log_energy)
 
     def round_as_saved(self, z_um, log_energy) -> None:
-        """Put z and E on the grid of the phantom file (8 significant digits), in place.
+        """Put z and E on the grid of the phantom file (``SIGNIFICANT_DIGITS``, 8), in place.
 
         A scored iterate is exactly what a checkpoint writes, so its score is
         the file's. With the 6 digits written before, the file's last digit
