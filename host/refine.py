@@ -61,7 +61,7 @@ import numpy as np
 import torch
 
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
-from octcl.phantom import Phantom
+from octcl.phantom import SIGNIFICANT_DIGITS, Phantom, _round_significant
 from octcl.render import Rendering, display_vjp
 
 from .field import _available_cores
@@ -228,17 +228,8 @@ class RefineResult:
 
 
 def saved_precision(values: np.ndarray) -> np.ndarray:
-    """``values`` rounded to 6 significant digits, as :meth:`Phantom.save` writes them (``%.5e``).
-
-    v ↦ round(v·10^{5−e})·10^{e−5} with e = ⌊log10 |v|⌋; it differs from
-    parsing the printed text at most in the last bit (or, for a product
-    that lands within rounding error of a half, in the 6th digit).
-    """
-    values = np.asarray(values, dtype=np.float64)
-    magnitude = np.abs(values)
-    exponent = np.floor(np.log10(magnitude, out=np.zeros_like(magnitude), where=magnitude > 0))
-    scale = 10.0 ** (5 - exponent)
-    return np.round(values * scale) / scale
+    """``values`` as the phantom file holds them: rounded to ``SIGNIFICANT_DIGITS`` as :meth:`Phantom.save` writes them."""
+    return _round_significant(values, SIGNIFICANT_DIGITS)
 
 
 class _Adam:
@@ -384,12 +375,14 @@ class _Refiner:
         np.clip(log_energy, self.schedule.min_log_energy, math.log(MAX_ENERGY_PCT), out=log_energy)
 
     def round_as_saved(self, z_um, log_energy) -> None:
-        """Put z and E on the 6-significant-digit grid of the phantom file, in place.
+        """Put z and E on the grid of the phantom file (``SIGNIFICANT_DIGITS``, 8), in place.
 
         A scored iterate is exactly what a checkpoint writes, so its score is
-        the file's: at z ≥ 1000 µm the file's last digit is 0.01 µm, a carrier
-        phase step of 0.097 rad, and rounding moved a refined phantom's score
-        by up to 7e−5 when it was scored before rounding.
+        the file's. With the 6 digits written before, the file's last digit
+        at z ≥ 1000 µm was 0.01 µm, a carrier phase step of 0.097 rad, and
+        rounding moved a refined phantom's score by up to 7e−5 when it was
+        scored before rounding; with 8 it is 1e−4 µm, below the smallest
+        depth step of the schedule.
         """
         z_um[:] = saved_precision(z_um)
         log_energy[:] = np.log(np.minimum(saved_precision(np.exp(log_energy)), MAX_ENERGY_PCT))

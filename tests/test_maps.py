@@ -7,6 +7,7 @@ import pytest
 import torch
 from PIL import Image
 
+import octcl._io
 from octcl import maps
 from octcl._io import GREY_LUT, read_png_rgb, read_scan
 
@@ -245,10 +246,10 @@ def test_write_maps_replaces_existing_files_atomically(official, tmp_path, monke
     # A write that fails leaves the previous file whole and no temporary file.
     previous = destination.read_bytes()
 
-    def failing_save(*args, **kwargs):
+    def failing_sync(fd):  # the data could not all reach the disk
         raise OSError("disk full")
 
-    monkeypatch.setattr(Image.Image, "save", failing_save)
+    monkeypatch.setattr(octcl._io.os, "fsync", failing_sync)
     with pytest.raises(OSError, match="disk full"):
         maps.write_maps(path, out_dir=tmp_path)
     assert destination.read_bytes() == previous

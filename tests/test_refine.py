@@ -147,7 +147,7 @@ def test_short_schedule_improves_on_stage_2(stage2_phantom, layers_path):
     np.testing.assert_array_equal(phantoms[-1][0].z_um, result.phantom.z_um)
     scored = [entry["score"] for entry in result.trace if entry.get("score") is not None]
     assert max(scored) == result.components["mean"]
-    # x and y stay, on the file's 6-digit grid (z and E too, so the score is the file's).
+    # x and y stay, on the file's grid (z and E too, so the score is the file's).
     for column in ("x_um", "y_um"):
         np.testing.assert_array_equal(getattr(result.phantom, column),
                                       saved_precision(getattr(stage2_phantom, column)))
