@@ -160,17 +160,22 @@ def _invert_lines(result: dict) -> list[str]:
     seconds = result["seconds"]
     stages = ", ".join(f"{name} {format_seconds(seconds[name])}"
                        for name in ("field", "decode", "setup", "refine") if name in seconds)
-    ending = "stopped by the time budget" if result["stopped_by_deadline"] else "schedule completed"
+    ending = "fixed schedule" if result["fixed_schedule"] else \
+        "deadline mode, stopped by the time budget" if result["stopped_by_deadline"] else \
+        "deadline mode, schedule completed"
+    threads = result["threads"] if result["threads"] is not None else "chosen by timing"
     return [f"{result['output']}: {result['scatterers']:,} scatterers, score {result['score']:.5f} "
             f"(initial_score after stages 1-2: {result['initial_score']:.5f})",
             *_format_table(result["components"]),
-            f"iterations: {result['iterations']} ({ending}); seed {result['seed']}",
+            f"iterations: {result['iterations']} ({ending}); field_iterations {result['field_iterations']}; "
+            f"seed {result['seed']}; threads {threads}",
+            f"reproduce (this schedule, no clock decisions): {result['reproduce']}",
             f"seconds: {format_seconds(seconds['total'])} ({stages}); "
             f"checkpoints {result['checkpoints']}, peak memory {result['peak_memory_mib']:.0f} MiB"]
 
 
 def _cmd_invert(args) -> int:
-    from .host.invert import invert, invert_directory
+    from .host.invert import TimeBudgetExceeded, invert, invert_directory
 
     config = _config(args)
     if bool(args.targets) == bool(args.target):
@@ -181,12 +186,16 @@ def _cmd_invert(args) -> int:
         raise UsageError("invert needs -o PHANTOM.txt")
     with _display(args, "invert") as display:
         progress = _invert_progress(display)
-        if args.targets:
-            summary = invert_directory(args.targets, args.out, time_budget_s=args.time_budget,
-                                       seed=args.seed, progress=progress, config=config)
-        else:
-            result = invert(args.target, args.output, time_budget_s=args.time_budget, seed=args.seed,
-                            report_path=args.report, progress=progress, config=config).as_dict()
+        settings = {"time_budget_s": args.time_budget, "seed": args.seed, "progress": progress, "config": config,
+                    "iterations": args.iterations, "threads": args.threads,
+                    **({"field_iterations": args.field_iterations} if args.field_iterations is not None else {})}
+        try:
+            if args.targets:
+                summary = invert_directory(args.targets, args.out, **settings)
+            else:
+                result = invert(args.target, args.output, report_path=args.report, **settings).as_dict()
+        except TimeBudgetExceeded as exc:  # a budget too small for the fixed schedule asked for
+            raise UsageError(str(exc)) from None
     if args.target:
         payload = {**result, "report": str(args.report) if args.report else None}
         return _finish(args, payload, [*_invert_lines(result), *([f"report: {args.report}"] if args.report else [])])
@@ -274,8 +283,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
     p.add_argument("--targets", help="folder of target PNGs (with --out)")
     p.add_argument("--out", help="output folder for --targets")
-    p.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan (default 600)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--time-budget", type=float, default=600.0,
+                   help="seconds per scan (default 600); with --iterations only a ceiling that fails the run")
+    p.add_argument("--seed", type=int, default=0, help="seed of the decoder's random elevations (default 0)")
+    p.add_argument("--iterations", type=int, metavar="N",
+                   help="fixed schedule: N Adam iterations of stage 3 and --field-iterations of stage 1, "
+                        "no decision from the clock, at --threads threads: the same target, seed, N, "
+                        "version and device give the same file, byte for byte. Without it the time budget "
+                        "decides how far each stage gets (the summary says how to repeat that schedule)")
+    p.add_argument("--field-iterations", type=int, metavar="M",
+                   help="stage 1 iterations (default 1500; at most, within its time share, without --iterations)")
+    p.add_argument("--threads", type=int, metavar="T",
+                   help="torch CPU threads for the whole run (default with --iterations: 1; without: chosen "
+                        "by timing)")
     p.add_argument("--report", help="JSON report: score trace against time, per stage")
     p.add_argument("--config", help="Configuration.ini")
 

@@ -22,8 +22,10 @@ JSON_KEYS = {
     "score": {"ref", "pred", *COMPONENT_KEYS, "seconds"},
     "score --refs": {"refs", "preds", "scans", "medians", "score", "csv", "seconds"},
     "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
-               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "seed", "report"},
-    "invert --targets": {"scans", "medians", "score", "median_seconds", "time_budget_s", "seed"},
+               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "seed", "field_iterations",
+               "fixed_schedule", "threads", "reproduce", "report"},
+    "invert --targets": {"scans", "medians", "score", "median_seconds", "time_budget_s", "seed", "iterations",
+                         "field_iterations", "threads"},
     "weights": {"weights", "ok"},
     "devices": {"id", "device", "default"},
 }
@@ -121,6 +123,9 @@ def test_render_numpy_backend_and_truncate(tmp_path, capsys):
     (["score", "--refs", "{tmp}"], "--preds"),
     (["render", "{tmp}/bad_phantom.txt", "-o", "{tmp}/x.png"], "bad_phantom.txt:2: E = 'abc' is not a number"),
     (["devices", "--device", "no-such-device"], "no OpenCL device matches 'no-such-device'"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--iterations", "401"],
+     "iterations must be a whole number in [0, 400]"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--threads", "0"], "threads must be a whole number ≥ 1"),
 ])
 def test_bad_input_exits_2_with_one_line_reason(tmp_path, capsys, argv, message):
     (tmp_path / "bad.png").write_text("not an image")
@@ -166,3 +171,47 @@ def test_invert_prints_a_summary_or_json(tmp_path, capsys, shared_data):
     summary = json.loads(out)
     assert status == 0 and set(summary) == JSON_KEYS["invert --targets"]
     assert set(summary["scans"]["layers.png"]) >= {"score", "components", "seconds", "output"}
+    assert summary["iterations"] is None and summary["scans"]["layers.png"]["iterations"] >= 0
+
+
+def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, shared_data):
+    """`--seed 5 --iterations N` twice gives the same file, byte for byte; another seed another file.
+
+    The schedule is tiny to keep the test short; ``scripts/check_determinism.py``
+    runs longer ones in fresh processes and across thread counts.
+    """
+    import octcl
+    from octcl.host.target import read_target
+
+    target = shared_data / "official" / "Scan_Exp2_Layers_A.png"
+    schedule = ["--iterations", 2, "--field-iterations", 20]
+    results = []
+    for name in ("a", "b"):
+        status, out, _ = run(capsys, "invert", target, "-o", tmp_path / f"{name}.txt", "--seed", 5, *schedule,
+                             "--quiet", "--json")
+        assert status == 0
+        results.append(json.loads(out))
+    assert (tmp_path / "a.txt").read_bytes() == (tmp_path / "b.txt").read_bytes()
+    assert results[0]["score"] == results[1]["score"]
+    first = results[0]
+    assert first["fixed_schedule"] and not first["stopped_by_deadline"]
+    assert (first["iterations"], first["field_iterations"], first["threads"]) == (2, 20, 1)
+    assert first["reproduce"] == "--seed 5 --iterations 2 --field-iterations 20 --threads 1"
+    # The same schedule from the target as an array (what a batch runner
+    # sends a worker), with another seed.
+    result = octcl.invert(read_target(target), tmp_path / "c.txt", seed=6, iterations=2, field_iterations=20,
+                          name="layers")
+    assert result.target == "layers" and result.iterations == 2
+    assert (tmp_path / "c.txt").read_bytes() != (tmp_path / "a.txt").read_bytes()
+
+
+def test_invert_fixed_schedule_past_its_budget_fails_loudly(tmp_path, capsys, shared_data):
+    target = shared_data / "official" / "Scan_Exp2_Layers_A.png"
+    output = tmp_path / "a.txt"
+    status, out, err = run(capsys, "invert", target, "-o", output, "--iterations", 2, "--field-iterations", 10**6,
+                           "--time-budget", 10)
+    assert status == 2 and out == ""
+    message = err.strip().splitlines()[-1]
+    assert message.startswith("octcl invert: error: ") and str(target) in message
+    assert "did not fit the time budget of 10 s" in message and "in stage 1" in message
+    assert "nothing was written" in message and not output.exists()

@@ -10,7 +10,6 @@ import time
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from octcl._io import ImageFormatError, write_grey_png
 from octcl.host.invert import invert, invert_directory
@@ -55,15 +54,6 @@ def test_bad_targets_are_refused_naming_the_file(tmp_path, kind):
 def test_bad_budget_is_refused(layers_path, tmp_path):
     with pytest.raises(ValueError, match="time_budget_s"):
         invert(layers_path, tmp_path / "out.txt", time_budget_s=0)
-
-
-def test_rgb_target_is_accepted_like_its_grey_rgba(layers_path, tmp_path):
-    """An RGB PNG reads as the mean of its channels; no alpha is needed."""
-    from octcl.host.invert import read_target
-
-    rgb = tmp_path / "rgb.png"
-    Image.open(layers_path).convert("RGB").save(rgb)
-    np.testing.assert_array_equal(read_target(rgb), read_target(layers_path))
 
 
 def test_budget_is_respected_and_report_written(layers_path, tmp_path):
