@@ -41,7 +41,10 @@ moments at a lower learning rate, from the best phantom so far) keep the
 best of the parent and their own checkpoints, as in the published schedule.
 
 Everything stops at a deadline (``time.monotonic()``), checked before every
-iteration and every exact evaluation against their measured durations.
+iteration and every exact evaluation against their measured durations. Without
+one (a fixed schedule, :meth:`RefineSchedule.truncated`) no decision depends on
+the clock: with a fixed thread count the result depends only on the inputs,
+the schedule and the device (``docs/reproducibility.md``).
 
 Cost on two CPU cores (PoCL), 280k scatterers, idle machine: 0.76 s an
 iteration — set_phantom 0.12 s, forward 0.09 s, loss 0.40 s (two threads),
