@@ -166,12 +166,13 @@ def test_invert_prints_a_summary_or_json(tmp_path, capsys, shared_data):
     targets = tmp_path / "targets"
     targets.mkdir()
     (targets / "layers.png").write_bytes(target.read_bytes())
-    status, out, _ = run(capsys, "invert", "--targets", targets, "--out", tmp_path / "out",
-                         "--time-budget", 20, "--json")
-    summary = json.loads(out)
-    assert status == 0 and set(summary) == JSON_KEYS["invert --targets"]
+    # The folder form, with a tiny fixed schedule: a summary, or the same values as JSON.
+    human, summary = run_both(capsys, "invert --targets", "invert", "--targets", targets, "--out", tmp_path / "out",
+                              "--iterations", 1, "--field-iterations", 10)
     assert set(summary["scans"]["layers.png"]) >= {"score", "components", "seconds", "output"}
-    assert summary["iterations"] is None and summary["scans"]["layers.png"]["iterations"] >= 0
+    assert summary["iterations"] == summary["scans"]["layers.png"]["iterations"] == 1
+    assert f"layers.png: {summary['scans']['layers.png']['score']:.5f}" in human
+    assert f"global, mean of the 8 medians): {summary['score']:.5f}" in human
 
 
 def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, shared_data):
