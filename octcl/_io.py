@@ -48,7 +48,7 @@ GREY_LUT = _matplotlib_grey_lut()
 
 
 class ImageFormatError(ValueError):
-    """A PNG that octcl cannot take as a B-scan or map; the message says why."""
+    """A PNG (or an array standing for one) that octcl cannot take as a B-scan or map; the message says why."""
 
 
 @contextlib.contextmanager
@@ -91,8 +91,10 @@ def _png_header(path: Path) -> tuple[int, int, int, int]:
     return width, height, bit_depth, colour_type
 
 
-def read_png_rgb(path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Read an 8-bit PNG as a (rows, columns, 3) uint8 RGB array, alpha dropped.
+def read_png_pixels(path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an 8-bit PNG's pixels as stored: (rows, columns, channels) uint8.
+
+    The channels are 1 (grey), 2 (grey+alpha), 3 (RGB) or 4 (RGBA).
 
     Parameters
     ----------
@@ -131,21 +133,35 @@ def read_png_rgb(path, shape: tuple[int, int] | None = None) -> np.ndarray:
             pixels = np.asarray(image)
     except (OSError, SyntaxError, ValueError, zlib.error) as exc:
         raise ImageFormatError(f"{path}: truncated or corrupt PNG ({exc})") from None
-    if pixels.ndim == 2:
-        pixels = pixels[:, :, None]
+    return pixels[:, :, None] if pixels.ndim == 2 else pixels
+
+
+def rgb_of_pixels(pixels: np.ndarray) -> np.ndarray:
+    """(rows, columns, 3) RGB of :func:`read_png_pixels`' pixels: alpha dropped, grey repeated."""
     colour = pixels[:, :, :1] if pixels.shape[2] <= 2 else pixels[:, :, :3]
-    return np.ascontiguousarray(np.broadcast_to(colour, (height, width, 3)), dtype=np.uint8)
+    return np.ascontiguousarray(np.broadcast_to(colour, pixels.shape[:2] + (3,)), dtype=np.uint8)
+
+
+def read_png_rgb(path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an 8-bit PNG as a (rows, columns, 3) uint8 RGB array, alpha dropped.
+
+    Parameters and errors as :func:`read_png_pixels`.
+    """
+    return rgb_of_pixels(read_png_pixels(path, shape))
+
+
+def scan_of_rgb(rgb: np.ndarray) -> np.ndarray:
+    """The task contract's reading of RGB levels: each channel ``level / 255`` in float32, then their mean.
+
+    This is also matplotlib's ``imread`` followed by the mean over RGB, as
+    the official processor reads a scan.
+    """
+    return np.mean(np.divide(rgb, 255, dtype=np.float32), axis=2)
 
 
 def read_scan(path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Read a B-scan PNG as float32 in [0, 1]: RGB scaled by 1/255, then averaged.
-
-    This is the task contract's reading (and matplotlib's ``imread`` followed
-    by the mean over RGB, as the official processor does): each channel is
-    ``level / 255`` in float32, and the image is the float32 mean of the three.
-    """
-    rgb = read_png_rgb(path, shape)
-    return np.mean(np.divide(rgb, 255, dtype=np.float32), axis=2)
+    """Read a B-scan PNG as float32 in [0, 1]: RGB scaled by 1/255, then averaged (:func:`scan_of_rgb`)."""
+    return scan_of_rgb(read_png_rgb(path, shape))
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:

@@ -3,6 +3,13 @@
 Subcommands: ``render``, ``maps``, ``score``, ``phantom``, ``invert``,
 ``weights``, ``devices``. Exit status 0 on success, 2 with a one-line reason
 on bad input or a missing prerequisite, 1 on an unexpected failure.
+
+Standard output carries the result: a short summary for people by default
+(what was written where, the score table, the time taken), the same values
+as one JSON document with ``--json`` (shapes in the README; the summary
+names its values by the JSON keys where they overlap), nothing with
+``--quiet``. Progress goes to standard error (:mod:`octcl._progress`), off
+with ``--quiet``.
 """
 
 from __future__ import annotations
@@ -10,10 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 from ._io import ImageFormatError
-from ._progress import ProgressBar
+from ._progress import ProgressDisplay, format_seconds
 from .config import DEFAULT_CONFIG, ConfigError, ScannerConfig
 from .phantom import Phantom, PhantomError
 
@@ -26,9 +34,28 @@ def _config(args) -> ScannerConfig:
     return ScannerConfig.from_ini(args.config) if getattr(args, "config", None) else DEFAULT_CONFIG
 
 
-def _print_json(payload) -> None:
-    json.dump(payload, sys.stdout, indent=2)
-    sys.stdout.write("\n")
+def _finish(args, payload, human: list[str]) -> int:
+    """Print the result: ``payload`` as JSON with ``--json``, else the ``human`` lines unless ``--quiet``."""
+    if args.json:
+        json.dump(payload, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    elif not args.quiet:
+        print("\n".join(human))
+    return 0
+
+
+def _display(args, label: str) -> ProgressDisplay:
+    return ProgressDisplay(label, enabled=not args.quiet)
+
+
+def _format_table(components: dict) -> list[str]:
+    """The eight components as a map × metric table."""
+    from .scorer import MAP_NAMES
+
+    lines = [f"{'map':<8}{'MS-SSIM':>10}{'1-LPIPS':>10}"]
+    for name in MAP_NAMES:
+        lines.append(f"{name:<8}{components[f'msssim_{name}']:>10.5f}{components[f'one_minus_lpips_{name}']:>10.5f}")
+    return lines
 
 
 # -------------------------------------------------------------- subcommands
@@ -36,6 +63,7 @@ def _cmd_render(args) -> int:
     from ._io import write_grey_png
     from .render import render
 
+    started = time.monotonic()
     config = _config(args)
     phantom = Phantom.load(args.phantom, config, truncate=args.truncate)
     settings = None
@@ -44,124 +72,150 @@ def _cmd_render(args) -> int:
 
         settings = KernelSettings(spread_width=args.spread_width, shadow_radius_sq=args.shadow_radius_sq,
                                   double=args.double, variant=args.kernel_variant)
-    with ProgressBar(f"render {Path(args.phantom).name}") as bar:
-        bar.update(0, f"{len(phantom):,} scatterers, {args.backend}", force=True)
+    with _display(args, f"render {Path(args.phantom).name}") as display:
+        display.update(None, f"{len(phantom):,} scatterers, {args.backend}", force=True)
         rendering = render(phantom, config, backend=args.backend, device=args.device, settings=settings)
     write_grey_png(args.output, rendering.levels)
-    if args.json:
-        _print_json({"phantom": str(args.phantom), "scan": str(args.output), "scatterers": len(phantom),
-                     "backend": args.backend})
-    else:
-        print(f"{args.output}: {len(phantom):,} scatterers rendered ({args.backend})")
-    return 0
+    seconds = time.monotonic() - started
+    return _finish(args, {"phantom": str(args.phantom), "scan": str(args.output), "scatterers": len(phantom),
+                          "backend": args.backend, "seconds": seconds},
+                   [f"{args.output}: {len(phantom):,} scatterers rendered ({args.backend}) "
+                    f"in {format_seconds(seconds)}"])
 
 
 def _cmd_maps(args) -> int:
     from .maps import write_maps
 
+    started = time.monotonic()
     written = write_maps(args.scan, args.output_dir)
-    if args.json:
-        _print_json({name: str(path) for name, path in written.items()})
-    else:
-        for path in written.values():
-            print(path)
-    return 0
-
-
-def _format_table(result: dict) -> str:
-    from .scorer import MAP_NAMES
-
-    lines = [f"{'map':<8}{'MS-SSIM':>10}{'1-LPIPS':>10}"]
-    for name in MAP_NAMES:
-        lines.append(f"{name:<8}{result[f'msssim_{name}']:>10.4f}{result[f'one_minus_lpips_{name}']:>10.4f}")
-    return "\n".join(lines)
+    seconds = time.monotonic() - started
+    return _finish(args, {"scan": str(args.scan), "maps": {name: str(path) for name, path in written.items()},
+                          "seconds": seconds},
+                   [f"{name:<4} {path}" for name, path in written.items()])
 
 
 def _cmd_score(args) -> int:
     from .scorer import score, score_directories, write_score_csv
 
+    started = time.monotonic()
     if args.refs or args.preds:
         if not (args.refs and args.preds) or args.ref or args.pred:
             raise UsageError("give either REF.png PRED.png or both --refs DIR and --preds DIR")
-        with ProgressBar("score") as bar:
+        with _display(args, "score") as display:
             result = score_directories(args.refs, args.preds,
-                                       progress=lambda i, n, name: bar.update(i, name, total=n))
+                                       progress=lambda i, n, name: display.update(i / n, f"{i}/{n} {name}"))
         if args.csv:
             write_score_csv(result, args.csv)
-        if args.json:
-            _print_json(result)
-        else:
-            for name, components in result["scans"].items():
-                print(f"{name}: mean {components['mean']:.4f}")
-            print("medians:")
-            print(_format_table(result["medians"]))
-            print(f"global score: {result['score']:.4f}")
-        return 0
+        seconds = time.monotonic() - started
+        human = [f"{name}: {components['mean']:.5f}" for name, components in result["scans"].items()]
+        human += ["medians:", *_format_table(result["medians"]),
+                  f"score (global, mean of the 8 medians): {result['score']:.5f}",
+                  *([f"csv: {args.csv}"] if args.csv else []),
+                  f"{len(result['scans'])} scans in {format_seconds(seconds)}"]
+        return _finish(args, {"refs": str(args.refs), "preds": str(args.preds), **result,
+                              "csv": str(args.csv) if args.csv else None, "seconds": seconds}, human)
     if not (args.ref and args.pred):
         raise UsageError("give REF.png PRED.png, or --refs DIR --preds DIR")
     result = score(args.ref, args.pred)
-    if args.json:
-        _print_json(result)
-    else:
-        print(_format_table(result))
-        print(f"mean of the 8 components: {result['mean']:.4f}")
-    return 0
+    seconds = time.monotonic() - started
+    return _finish(args, {"ref": str(args.ref), "pred": str(args.pred), **result, "seconds": seconds},
+                   [*_format_table(result), f"mean (score of the scan): {result['mean']:.5f}",
+                    f"time: {format_seconds(seconds)}"])
 
 
 def _cmd_phantom(args) -> int:
+    started = time.monotonic()
     config = _config(args)
     if args.kind in ("uniform", "layers"):
         phantom = Phantom.baseline(args.kind, args.seed)
     else:
         phantom = Phantom.skin(args.seed, config)
     phantom.save(args.output)
-    if args.json:
-        _print_json({"phantom": str(args.output), "kind": args.kind, "seed": args.seed,
-                     "scatterers": len(phantom)})
-    else:
-        print(f"{args.output}: {len(phantom):,} scatterers ({args.kind}, seed {args.seed})")
-    return 0
+    seconds = time.monotonic() - started
+    return _finish(args, {"phantom": str(args.output), "kind": args.kind, "seed": args.seed,
+                          "scatterers": len(phantom), "seconds": seconds},
+                   [f"{args.output}: {len(phantom):,} scatterers ({args.kind}, seed {args.seed}) "
+                    f"in {format_seconds(seconds)}"])
+
+
+def _invert_progress(display: ProgressDisplay):
+    """A progress callback for :func:`octcl.host.invert.invert` drawing on ``display``."""
+    last_stage = None
+
+    def show(state) -> None:
+        nonlocal last_stage
+        stage = f"{state.stage} {state.iteration}/{state.iterations}" \
+            if state.iterations > 1 and state.stage != "done" else state.stage
+        score = "" if state.score is None else \
+            f"score {state.score:.5f} at {format_seconds(state.score_elapsed_s)}"
+        text = "  ".join(part for part in (state.scan, stage, score) if part)
+        display.update(state.fraction, text, state.seconds_left, force=state.stage != last_stage)
+        last_stage = state.stage
+
+    return show
+
+
+def _invert_lines(result: dict) -> list[str]:
+    """Human summary of one inversion (the keys of :class:`octcl.host.invert.InvertResult`)."""
+    seconds = result["seconds"]
+    stages = ", ".join(f"{name} {format_seconds(seconds[name])}"
+                       for name in ("field", "decode", "setup", "refine") if name in seconds)
+    ending = "fixed schedule" if result["fixed_schedule"] else \
+        "deadline mode, stopped by the time budget" if result["stopped_by_deadline"] else \
+        "deadline mode, schedule completed"
+    threads = result["threads"] if result["threads"] is not None else "chosen by timing"
+    return [f"{result['output']}: {result['scatterers']:,} scatterers, score {result['score']:.5f} "
+            f"(initial_score after stages 1-2: {result['initial_score']:.5f})",
+            *_format_table(result["components"]),
+            f"iterations: {result['iterations']} ({ending}); field_iterations {result['field_iterations']}; "
+            f"seed {result['seed']}; threads {threads}",
+            f"reproduce (this schedule, no clock decisions): {result['reproduce']}",
+            f"seconds: {format_seconds(seconds['total'])} ({stages}); "
+            f"checkpoints {result['checkpoints']}, peak memory {result['peak_memory_mib']:.0f} MiB"]
 
 
 def _cmd_invert(args) -> int:
-    from .host.invert import invert, invert_directory
+    from .host.invert import TimeBudgetExceeded, invert, invert_directory
 
     config = _config(args)
     if bool(args.targets) == bool(args.target):
         raise UsageError("give TARGET.png -o PHANTOM.txt, or --targets DIR --out DIR")
-    with ProgressBar("invert") as bar:
-        def progress(stage, iteration, total, score_estimate, seconds_left):
-            estimate = "" if score_estimate is None else f"score~{score_estimate:.4f}"
-            bar.update(iteration, f"{stage} {iteration}/{total} {estimate} {seconds_left:.0f}s left",
-                       total=total)
-
-        if args.targets:
-            if not args.out:
-                raise UsageError("--targets needs --out DIR")
-            summary = invert_directory(args.targets, args.out, time_budget_s=args.time_budget,
-                                       seed=args.seed, progress=progress, config=config)
-        else:
-            if not args.output:
-                raise UsageError("invert needs -o PHANTOM.txt")
-            summary = invert(args.target, args.output, time_budget_s=args.time_budget, seed=args.seed,
-                             report_path=args.report, progress=progress, config=config)
-    summary = summary if isinstance(summary, dict) else summary.as_dict()
-    if args.json:
-        _print_json(summary)
-    else:
-        print(json.dumps(summary, indent=2))
-    return 0
+    if args.targets and not args.out:
+        raise UsageError("--targets needs --out DIR")
+    if args.target and not args.output:
+        raise UsageError("invert needs -o PHANTOM.txt")
+    with _display(args, "invert") as display:
+        progress = _invert_progress(display)
+        settings = {"time_budget_s": args.time_budget, "seed": args.seed, "progress": progress, "config": config,
+                    "iterations": args.iterations, "threads": args.threads,
+                    **({"field_iterations": args.field_iterations} if args.field_iterations is not None else {})}
+        try:
+            if args.targets:
+                summary = invert_directory(args.targets, args.out, **settings)
+            else:
+                result = invert(args.target, args.output, report_path=args.report, **settings).as_dict()
+        except TimeBudgetExceeded as exc:  # a budget too small for the fixed schedule asked for
+            raise UsageError(str(exc)) from None
+    if args.target:
+        payload = {**result, "report": str(args.report) if args.report else None}
+        return _finish(args, payload, [*_invert_lines(result), *([f"report: {args.report}"] if args.report else [])])
+    human = []
+    for name, scan in summary["scans"].items():
+        human.append(f"{name}: error: {scan['error']}" if "error" in scan else
+                     f"{name}: {scan['score']:.5f} in {format_seconds(scan['seconds'])} -> {scan['output']}")
+    if "score" in summary:
+        human += ["medians:", *_format_table(summary["medians"]),
+                  f"score (global, mean of the 8 medians): {summary['score']:.5f}; "
+                  f"median_seconds {format_seconds(summary['median_seconds'])}"]
+    human.append(f"summary: {Path(args.out) / 'summary.json'}")
+    return _finish(args, summary, human)
 
 
 def _cmd_weights(args) -> int:
     from ._lpips import check_weights, fetch_weights
 
     path = fetch_weights(args.source) if args.action == "fetch" else check_weights()
-    if args.json:
-        _print_json({"weights": str(path), "ok": True})
-    else:
-        print(f"LPIPS weights ok: {path}")
-    return 0
+    return _finish(args, {"weights": str(path), "ok": True}, [f"LPIPS weights ok: {path}"])
 
 
 def _cmd_devices(args) -> int:
@@ -169,13 +223,9 @@ def _cmd_devices(args) -> int:
 
     devices = list_devices()
     chosen = select_device(args.device) if devices else None
-    if args.json:
-        _print_json([{"id": key, "device": describe(device), "default": device == chosen}
-                     for key, device in devices])
-    else:
-        for key, device in devices:
-            print(f"{'*' if device == chosen else ' '} {key}  {describe(device)}")
-    return 0
+    return _finish(args, [{"id": key, "device": describe(device), "default": device == chosen}
+                          for key, device in devices],
+                   [f"{'*' if device == chosen else ' '} {key}  {describe(device)}" for key, device in devices])
 
 
 # ------------------------------------------------------------------ parser
@@ -186,7 +236,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     def command(name, help_text, handler):
         p = sub.add_parser(name, help=help_text, description=help_text)
-        p.add_argument("--json", action="store_true", help="machine-readable output on stdout")
+        p.add_argument("--json", action="store_true",
+                       help="print the result as JSON on stdout (shapes in the README) instead of a summary")
+        p.add_argument("-q", "--quiet", action="store_true",
+                       help="no progress display and no summary (errors, and --json output, still appear)")
         p.set_defaults(handler=handler)
         return p
 
@@ -235,8 +288,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
     p.add_argument("--targets", help="folder of target PNGs (with --out)")
     p.add_argument("--out", help="output folder for --targets")
-    p.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan (default 600)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--time-budget", type=float, default=600.0,
+                   help="seconds per scan (default 600); with --iterations only a ceiling that fails the run")
+    p.add_argument("--seed", type=int, default=0, help="seed of the decoder's random elevations (default 0)")
+    p.add_argument("--iterations", type=int, metavar="N",
+                   help="fixed schedule: N Adam iterations of stage 3 and --field-iterations of stage 1, "
+                        "no decision from the clock, at --threads threads: the same target, seed, N, "
+                        "version and device give the same file, byte for byte. Without it the time budget "
+                        "decides how far each stage gets (the summary says how to repeat that schedule)")
+    p.add_argument("--field-iterations", type=int, metavar="M",
+                   help="stage 1 iterations (default 1500; at most, within its time share, without --iterations)")
+    p.add_argument("--threads", type=int, metavar="T",
+                   help="torch CPU threads for the whole run (default with --iterations: 1; without: chosen "
+                        "by timing)")
     p.add_argument("--report", help="JSON report: score trace against time, per stage")
     p.add_argument("--config", help="Configuration.ini")
 

@@ -68,3 +68,26 @@ def official_reference():
         return cache[kind, seed]
 
     return rendering
+
+
+@pytest.fixture
+def slow_clock(monkeypatch):
+    """``slow_clock(module)``: the module's ``time`` jumps 1000 s at every reading.
+
+    A run that takes no decision from the clock gives the same result under
+    it as under the real one; a run that does stops or changes course.
+    """
+    import itertools
+    import time
+    import types
+
+    def install(module):
+        readings = itertools.count()
+        start = time.monotonic()
+
+        def reading():
+            return start + 1000.0 * next(readings)
+
+        monkeypatch.setattr(module, "time", types.SimpleNamespace(monotonic=reading, perf_counter=reading))
+
+    return install

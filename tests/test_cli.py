@@ -10,6 +10,25 @@ import pytest
 from octcl._io import read_png_rgb
 from octcl.cli import main
 from octcl.phantom import Phantom
+from octcl.scorer import COMPONENTS
+
+
+#: The keys of each subcommand's ``--json`` document, as the README documents them.
+COMPONENT_KEYS = {*COMPONENTS, "mean"}
+JSON_KEYS = {
+    "phantom": {"phantom", "kind", "seed", "scatterers", "seconds"},
+    "render": {"phantom", "scan", "scatterers", "backend", "seconds"},
+    "maps": {"scan", "maps", "seconds"},
+    "score": {"ref", "pred", *COMPONENT_KEYS, "seconds"},
+    "score --refs": {"refs", "preds", "scans", "medians", "score", "csv", "seconds"},
+    "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
+               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "seed", "field_iterations",
+               "fixed_schedule", "threads", "reproduce", "report"},
+    "invert --targets": {"scans", "medians", "score", "median_seconds", "time_budget_s", "seed", "iterations",
+                         "field_iterations", "threads"},
+    "weights": {"weights", "ok"},
+    "devices": {"id", "device", "default"},
+}
 
 
 def run(capsys, *argv):
@@ -18,20 +37,55 @@ def run(capsys, *argv):
     return status, captured.out, captured.err
 
 
+def run_both(capsys, command, *argv):
+    """Run a command without and with --json: (human stdout, parsed JSON); checks both succeed."""
+    status, human, _ = run(capsys, *argv)
+    assert status == 0
+    with pytest.raises(json.JSONDecodeError):
+        json.loads(human)
+    assert human.strip() and human.count("\n") <= 20
+    status, out, _ = run(capsys, *argv, "--json")
+    assert status == 0
+    payload = json.loads(out)
+    for item in payload if isinstance(payload, list) else [payload]:
+        assert set(item) == JSON_KEYS[command], command
+    return human, payload
+
+
 def test_phantom_render_maps_score_reproduce_an_official_scan(tmp_path, capsys, official_data):
     phantom = tmp_path / "layers.txt"
-    assert run(capsys, "phantom", "baseline", "--kind", "layers", "--seed", 42, "-o", phantom)[0] == 0
+    human, payload = run_both(capsys, "phantom", "phantom", "baseline", "--kind", "layers", "--seed", 42,
+                              "-o", phantom)
+    assert f"{payload['scatterers']:,} scatterers" in human and str(phantom) in human
     scan = tmp_path / "layers.png"
-    assert run(capsys, "render", phantom, "-o", scan)[0] == 0
-    status, out, _ = run(capsys, "maps", scan, "--json")
-    assert status == 0 and sorted(json.loads(out)) == ["OAC", "RSC", "SC"]
+    human, payload = run_both(capsys, "render", "render", phantom, "-o", scan)
+    assert str(scan) in human and payload["scan"] == str(scan)
+    human, payload = run_both(capsys, "maps", "maps", scan)
+    assert sorted(payload["maps"]) == ["OAC", "RSC", "SC"]
+    assert all(path in human for path in payload["maps"].values())
     official = official_data / "Scan_Exp2_Layers_A.png"
-    status, out, _ = run(capsys, "score", official, scan, "--json")
-    result = json.loads(out)
-    assert status == 0 and set(result) >= {"msssim_Struct", "one_minus_lpips_RSC", "mean"}
+    human, result = run_both(capsys, "score", "score", official, scan)
     assert result["msssim_Struct"] > 0.9999
+    assert f"{result['mean']:.5f}" in human and "MS-SSIM" in human
     ours, theirs = read_png_rgb(scan)[..., 0], read_png_rgb(official)[..., 0]
     assert np.mean(ours == theirs) > 0.999
+
+
+def test_quiet_prints_nothing_but_json_when_asked(tmp_path, capsys):
+    phantom = tmp_path / "skin.txt"
+    assert run(capsys, "phantom", "skin", "-o", phantom, "--quiet") == (0, "", "")
+    status, out, err = run(capsys, "render", phantom, "-o", tmp_path / "skin.png", "--quiet", "--json")
+    assert status == 0 and err == "" and json.loads(out)["scatterers"] > 0
+    status, out, err = run(capsys, "render", phantom, "-o", tmp_path / "skin.png")
+    assert status == 0 and "skin.txt" in err  # progress on stderr, plain lines (not a terminal)
+    assert "\r" not in err
+
+
+def test_weights_and_devices_print_summaries_or_json(capsys, lpips_weights):
+    human, payload = run_both(capsys, "weights", "weights", "check")
+    assert payload["ok"] and str(lpips_weights) in human
+    human, payload = run_both(capsys, "devices", "devices")
+    assert all(device["id"] in human for device in payload)
 
 
 def test_score_directories_writes_csv(tmp_path, capsys, official_data):
@@ -40,8 +94,9 @@ def test_score_directories_writes_csv(tmp_path, capsys, official_data):
     for name in ("Scan_Exp1_Uniform_A.png",):
         (refs / name).write_bytes((official_data / name).read_bytes())
         (preds / name).write_bytes((official_data / "Scan_Exp1_Uniform_B.png").read_bytes())
-    status, out, _ = run(capsys, "score", "--refs", refs, "--preds", preds, "--csv", tmp_path / "s.csv")
-    assert status == 0 and "global score" in out
+    human, result = run_both(capsys, "score --refs", "score", "--refs", refs, "--preds", preds,
+                             "--csv", tmp_path / "s.csv")
+    assert "global" in human and f"{result['score']:.5f}" in human
     lines = (tmp_path / "s.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in lines] == ["scan", "Scan_Exp1_Uniform_A.png", "median"]
     # One scan: the global score is the mean of its 8 components (official: 0.672493).
@@ -67,6 +122,9 @@ def test_render_numpy_backend_and_truncate(tmp_path, capsys):
     (["score", "--refs", "{tmp}"], "--preds"),
     (["render", "{tmp}/bad_phantom.txt", "-o", "{tmp}/x.png"], "bad_phantom.txt:2: E = 'abc' is not a number"),
     (["devices", "--device", "no-such-device"], "no OpenCL device matches 'no-such-device'"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--iterations", "401"],
+     "iterations must be a whole number in [0, 400]"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--threads", "0"], "threads must be a whole number ≥ 1"),
 ])
 def test_bad_input_exits_2_with_one_line_reason(tmp_path, capsys, argv, message):
     (tmp_path / "bad.png").write_text("not an image")
@@ -104,3 +162,70 @@ def test_entry_point_runs_as_a_program(tmp_path):
     assert result.returncode == 0
     devices = json.loads(result.stdout)
     assert devices and sum(d["default"] for d in devices) == 1
+
+
+def test_invert_prints_a_summary_or_json(tmp_path, capsys, official_data):
+    target = official_data / "Scan_Exp2_Layers_A.png"
+    status, human, err = run(capsys, "invert", target, "-o", tmp_path / "a.txt", "--time-budget", 20,
+                             "--report", tmp_path / "a.json")
+    assert status == 0 and "\r" not in err and "invert 100%" in err.splitlines()[-1]
+    with pytest.raises(json.JSONDecodeError):
+        json.loads(human)
+    report = json.loads((tmp_path / "a.json").read_text())
+    assert f"{tmp_path / 'a.txt'}: {report['scatterers']:,} scatterers, score {report['score']:.5f}" in human
+    assert "MS-SSIM" in human and "report:" in human
+    status, out, _ = run(capsys, "invert", target, "-o", tmp_path / "b.txt", "--time-budget", 20, "--json")
+    assert status == 0 and set(json.loads(out)) == JSON_KEYS["invert"]
+    targets = tmp_path / "targets"
+    targets.mkdir()
+    (targets / "layers.png").write_bytes(target.read_bytes())
+    # The folder form, with a tiny fixed schedule: a summary, or the same values as JSON.
+    human, summary = run_both(capsys, "invert --targets", "invert", "--targets", targets, "--out", tmp_path / "out",
+                              "--iterations", 1, "--field-iterations", 10)
+    assert set(summary["scans"]["layers.png"]) >= {"score", "components", "seconds", "output"}
+    assert summary["iterations"] == summary["scans"]["layers.png"]["iterations"] == 1
+    assert f"layers.png: {summary['scans']['layers.png']['score']:.5f}" in human
+    assert f"global, mean of the 8 medians): {summary['score']:.5f}" in human
+
+
+def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, official_data):
+    """`--seed 5 --iterations N` twice gives the same file, byte for byte; another seed another file.
+
+    The schedule is tiny to keep the test short; ``scripts/check_determinism.py``
+    runs longer ones in fresh processes and across thread counts.
+    """
+    import octcl
+    from octcl.host.target import read_target
+
+    target = official_data / "Scan_Exp2_Layers_A.png"
+    schedule = ["--iterations", 2, "--field-iterations", 20]
+    results = []
+    for name in ("a", "b"):
+        status, out, _ = run(capsys, "invert", target, "-o", tmp_path / f"{name}.txt", "--seed", 5, *schedule,
+                             "--quiet", "--json")
+        assert status == 0
+        results.append(json.loads(out))
+    assert (tmp_path / "a.txt").read_bytes() == (tmp_path / "b.txt").read_bytes()
+    assert results[0]["score"] == results[1]["score"]
+    first = results[0]
+    assert first["fixed_schedule"] and not first["stopped_by_deadline"]
+    assert (first["iterations"], first["field_iterations"], first["threads"]) == (2, 20, 1)
+    assert first["reproduce"] == "--seed 5 --iterations 2 --field-iterations 20 --threads 1"
+    # The same schedule from the target as an array (what a batch runner
+    # sends a worker), with another seed.
+    result = octcl.invert(read_target(target), tmp_path / "c.txt", seed=6, iterations=2, field_iterations=20,
+                          name="layers")
+    assert result.target == "layers" and result.iterations == 2
+    assert (tmp_path / "c.txt").read_bytes() != (tmp_path / "a.txt").read_bytes()
+
+
+def test_invert_fixed_schedule_past_its_budget_fails_loudly(tmp_path, capsys, official_data):
+    target = official_data / "Scan_Exp2_Layers_A.png"
+    output = tmp_path / "a.txt"
+    status, out, err = run(capsys, "invert", target, "-o", output, "--iterations", 2, "--field-iterations", 10**6,
+                           "--time-budget", 10)
+    assert status == 2 and out == ""
+    message = err.strip().splitlines()[-1]
+    assert message.startswith("octcl invert: error: ") and str(target) in message
+    assert "did not fit the time budget of 10 s" in message and "in stage 1" in message
+    assert "nothing was written" in message and not output.exists()

@@ -152,3 +152,16 @@ def test_fit_field_of_a_flat_target_is_finite(level):
 def test_fit_field_refuses_a_target_of_the_wrong_size():
     with pytest.raises(ValueError, match="256x512"):
         fit_field(np.zeros((10, 20), dtype=np.uint8))
+
+
+def test_fit_field_without_a_budget_takes_no_decision_from_the_clock(uniform_levels, slow_clock):
+    import octcl.host.field as field_module
+
+    fits = [fit_field(uniform_levels, iterations=8, time_budget_s=None, threads=1)]
+    slow_clock(field_module)
+    fits.append(fit_field(uniform_levels, iterations=8, time_budget_s=None, threads=1))
+    assert [fit.iterations for fit in fits] == [8, 8]
+    np.testing.assert_array_equal(fits[0].field, fits[1].field)
+    np.testing.assert_array_equal(fits[0].losses, fits[1].losses)
+    # With a budget the same clock ends the fit before its first step.
+    assert fit_field(uniform_levels, iterations=8, time_budget_s=60.0, threads=1).iterations == 0
