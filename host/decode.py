@@ -178,7 +178,7 @@ def _rendered_field(children: _Children, config: ScannerConfig) -> np.ndarray:
     """
     nz, nx = config.shape
     k = ref.wavenumbers(config)
-    k0, dk = 2 * np.pi / config.wavelength_um, k[1] - k[0]
+    k0 = 2 * np.pi / config.wavelength_um
     offset_um = children.z_um - cell_depths_um(config)[children.row]
     weight = children.amplitude * np.exp(-2j * k0 * children.z_um)
     flat_cell = children.row * nx + children.column

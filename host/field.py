@@ -324,7 +324,7 @@ def _thread_trials(threads: int | None, iterations: int) -> list[int]:
 
 
 def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 1500,
-              time_budget_s: float = 40.0, energy_weight: float = ENERGY_WEIGHT,
+              time_budget_s: float | None = 40.0, energy_weight: float = ENERGY_WEIGHT,
               threads: int | None = None, dtype: torch.dtype = torch.float32,
               progress=None) -> FieldFit:
     """Fit the complex field F of the linear scanner to a target B-scan (stage 1).
@@ -374,7 +374,10 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
 
     The learning rate follows lr₀·½(1 + cos(π·τ)) with τ the larger of the
     fractions of ``iterations`` and ``time_budget_s`` used, so the schedule
-    completes whichever ends first.
+    completes whichever ends first; without a time budget τ is the fraction
+    of ``iterations`` alone, and the fit depends on no clock: with the same
+    target, iterations and thread count it is the same, bit for bit
+    (``scripts/check_determinism.py``).
 
     Parameters
     ----------
@@ -385,9 +388,10 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
         Scanner geometry; the target must have its shape (Nz, Nx).
     iterations : int
         Most Adam steps.
-    time_budget_s : float
+    time_budget_s : float or None
         Most wall time in seconds, initialisation included; the loop stops
-        at the first step that ends past it.
+        at the first step that ends past it. None: no time limit, all
+        ``iterations`` run.
     energy_weight : float
         λ_E, the weight of the field-energy term.
     threads : int, optional
@@ -408,7 +412,7 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     FieldFit
     """
     start = time.perf_counter()
-    if iterations < 1 or not time_budget_s > 0:
+    if iterations < 1 or not (time_budget_s is None or time_budget_s > 0):
         raise ValueError(f"need iterations ≥ 1 and time_budget_s > 0, got {iterations}, {time_budget_s}")
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
@@ -431,9 +435,11 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     optimiser = torch.optim.Adam([log_magnitude, phase], lr=LEARNING_RATE)
     losses = []
 
+    def time_fraction() -> float:
+        return 0.0 if time_budget_s is None else (time.perf_counter() - start) / time_budget_s
+
     def step():
-        elapsed = time.perf_counter() - start
-        fraction = min(1.0, max(len(losses) / iterations, elapsed / time_budget_s))
+        fraction = min(1.0, max(len(losses) / iterations, time_fraction()))
         for group in optimiser.param_groups:
             group["lr"] = LEARNING_RATE * 0.5 * (1.0 + math.cos(math.pi * fraction))
         field = torch.polar(torch.exp(log_magnitude), phase)
@@ -459,7 +465,7 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     trial_seconds = {}
     try:
         torch.set_num_threads(threads or 1)
-        while len(losses) < iterations and time.perf_counter() - start < time_budget_s:
+        while len(losses) < iterations and time_fraction() < 1.0:
             trial = len(losses)
             if trial < len(trials):
                 torch.set_num_threads(trials[trial])

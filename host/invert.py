@@ -13,6 +13,14 @@ The output file is only ever replaced by a complete, validated phantom
 first right after stage 2, then whenever the exact score improves (at most
 every ``CHECKPOINT_INTERVAL_S`` seconds) and at the end; a process killed at
 any moment leaves the last checkpoint, or no file before the first.
+
+Two modes. In deadline mode (the default) the stages share out the time
+budget, so how far each gets depends on the machine's speed and load; the
+result records the iteration counts reached. A fixed schedule (``iterations``)
+runs by iteration counts alone at a fixed torch thread count, takes no
+decision from the clock, and writes the same file, byte for byte, every time
+(``docs/reproducibility.md``); there the budget is only a ceiling that fails
+the run loudly.
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import resource
 import sys
 import threading
@@ -27,13 +36,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 
-from octcl._io import ImageFormatError, atomic_write, check_scan_levels, read_png_rgb, read_scan
+from octcl._io import atomic_write
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 
-from .refine import RefineProgress, RefineSchedule, refine
+from .refine import RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, refine
+from .target import check_target, read_target, target_scan
 
 #: Least time between two checkpoint writes during refinement, in seconds.
 #: Formatting and writing 295,000 rows takes 1.5–3.5 s of CPU (measured
@@ -45,6 +54,13 @@ CHECKPOINT_INTERVAL_S = 20.0
 #: ended at 0.99944 after 281 s, the full 11 s one at 0.99950 after 318 s.
 FIELD_BUDGET_FRACTION = 0.08
 FIELD_BUDGET_CAP_S = 45.0
+#: Stage 1's Adam steps (its learning rate anneals over them).
+FIELD_ITERATIONS = 1500
+#: torch's thread count in a fixed-schedule run unless given. One thread
+#: gives the same bits on machines with any number of cores (results differ
+#: between thread counts: docs/reproducibility.md), and on a loaded 2-core
+#: machine it is also the faster (see host/refine.py, _ThreadChooser).
+FIXED_THREADS = 1
 #: Seconds kept back from stage 3 for the last checkpoint writes and the
 #: report: a write may be under way when stage 3 ends and the best phantom
 #: still pending (each 1.5–3.5 s for 295,000 rows).
@@ -57,8 +73,10 @@ class InvertResult:
 
     Attributes
     ----------
-    target, output : str
-        The target PNG and the phantom file written.
+    target : str
+        The target's name: its path, or the ``name`` given with an array.
+    output : str
+        The phantom file written.
     score : float
         Mean of the eight exact components of the written phantom's rendering.
     components : dict
@@ -78,6 +96,23 @@ class InvertResult:
     stopped_by_deadline : bool
         Stage 3 was cut short by the time budget.
     seed : int
+    field_iterations : int
+        Adam steps of stage 1.
+    fixed_schedule : bool
+        The run followed a fixed schedule (``iterations`` given): no
+        decision was taken from the clock.
+    threads : int or None
+        torch's CPU thread count, held for the whole run; None where it was
+        chosen by timing (a deadline run without ``threads``).
+    reproduce : str
+        ``octcl invert`` options that run this schedule again with no
+        decision from the clock: ``--seed``, ``--iterations``,
+        ``--field-iterations``, ``--threads``. For a fixed-schedule run they
+        give the same file again (same version and device, see
+        ``docs/reproducibility.md``); a deadline run's timed thread choices
+        and, where its time share cut stage 1 short, its clock-driven
+        learning-rate decay are not replayed: they give the fixed-schedule
+        run of the same lengths, at one thread unless ``threads`` was given.
     """
 
     target: str
@@ -92,6 +127,10 @@ class InvertResult:
     peak_memory_mib: float
     stopped_by_deadline: bool
     seed: int
+    field_iterations: int
+    fixed_schedule: bool
+    threads: int | None
+    reproduce: str
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -184,47 +223,6 @@ def peak_memory_mib() -> float:
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024
 
 
-def read_target(target, config: ScannerConfig = DEFAULT_CONFIG, source: str | None = None) -> np.ndarray:
-    """Read and check a target B-scan; returns it as :func:`octcl._io.read_scan` does.
-
-    ``target`` is a PNG file, or the scan's 8-bit grey levels as a 2-D
-    ``uint8`` array, taken as the opaque grey PNG of them that the scanner
-    writes (pixel values level / 255; scored as :class:`octcl.host.loss.
-    ExactScore` scores such a PNG).
-    ``source`` names the target in messages (default: the path, or
-    ``target array``).
-
-    Raises
-    ------
-    ImageFormatError
-        Not a PNG, not 8-bit, not (Nz, Nx) (:func:`octcl._io.read_png_rgb`,
-        :func:`octcl._io.check_scan_levels`), or one uniform level. The
-        scanner's display puts its brightest pixel at level 255 and spans
-        51 dB below it, so an all-black or uniform grey image is not one of
-        its B-scans, and an all-white one would need every pixel equally
-        bright: no phantom renders such an image, and its OAC and speckle
-        maps are undefined (0/0), so it is refused rather than inverted into
-        noise.
-    """
-    if isinstance(target, np.ndarray):
-        source = source or "target array"
-        pixels = check_scan_levels(target, config.shape, source)
-    else:
-        source = source or str(target)
-        pixels = read_png_rgb(target, config.shape)
-    low, high = int(pixels.min()), int(pixels.max())
-    if low == high:
-        colour = {0: "black", 255: "white"}.get(low, f"grey level {low}")
-        raise ImageFormatError(
-            f"{source}: every pixel is {colour}; a B-scan has structure (its brightest pixel is "
-            "level 255 and its speckle spans the 51 dB display range), so there is nothing to invert")
-    if isinstance(target, np.ndarray):
-        from .loss import scan_of_levels
-
-        return scan_of_levels(pixels)
-    return read_scan(target, config.shape)
-
-
 class _CheckpointWriter:
     """Writes phantoms to the output in a background thread: validated, atomic, rate-limited.
 
@@ -293,27 +291,35 @@ def _decode(fit, config: ScannerConfig, seed: int) -> Phantom:
     return decode_field(fit.field, config, max_scatterers=TARGET_ROWS, seed=seed)
 
 
-def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0, report_path=None,
+def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, report_path=None,
            progress=None, config: ScannerConfig = DEFAULT_CONFIG,
-           schedule: RefineSchedule = RefineSchedule()) -> InvertResult:
-    """Invert a target B-scan PNG into a phantom file.
+           schedule: RefineSchedule = RefineSchedule(), iterations: int | None = None,
+           field_iterations: int = FIELD_ITERATIONS, threads: int | None = None,
+           name: str | None = None) -> InvertResult:
+    """Invert a target B-scan into a phantom file.
 
     Parameters
     ----------
-    target_path : str, Path or ndarray
-        The target: an 8-bit (Nz × Nx) grey, RGB or RGBA PNG, or its grey
-        levels as an (Nz, Nx) ``uint8`` array (:func:`read_target`).
+    target : str, Path or ndarray of uint8
+        The target: an 8-bit (Nz × Nx) grey, RGB or RGBA PNG, read once
+        (:func:`octcl.host.target.read_target`), or an array in either form
+        of :mod:`octcl.host.target`: (Nz, Nx) levels of a grey B-scan as the
+        scanner saves it, or (Nz, Nx, C) PNG pixels. ``read_target(path)``
+        gives the array that inverts exactly as ``path`` does.
     output_path : str or Path
         The phantom text file (``x y z E`` rows, ≤ 295,000 of them, all
         within the task contract: |x| ≤ Xmax/2, |y| ≤ 3 µm, 0 ≤ z ≤ Nz·Δz,
         0 ≤ E ≤ 100).
     time_budget_s : float
         Wall-clock budget in seconds for the whole inversion, reading the
-        target and compiling the kernels included. Stage 1 gets
-        min(8 % of it, 45 s); stage 2 runs once; stage 3 gets the rest.
+        target and compiling the kernels included. Without ``iterations``
+        (deadline mode) stage 1 gets min(8 % of it, 45 s), stage 2 runs
+        once and stage 3 gets the rest, so how far each stage gets depends
+        on the machine's speed and load. With ``iterations`` it is only a
+        ceiling: :class:`TimeBudgetExceeded` if the fixed schedule has not
+        ended when stage 3 would have to stop.
     seed : int
-        Seed of stage 2's random choices; with the same seed and machine
-        load the result repeats (the deadline decides how many iterations run).
+        Seed of stage 2's random choices (the scatterers' elevations).
     report_path : str or Path, optional
         JSON report: score trace against wall time per stage, final
         components, settings, seed, timings and peak memory.
@@ -322,7 +328,24 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
         the end (stage ``done``).
     config : ScannerConfig
     schedule : RefineSchedule
-        Stage 3's schedule (cut short by the budget).
+        Stage 3's schedule (cut short by the budget in deadline mode).
+    iterations : int, optional
+        Fixed-schedule mode: stage 1 runs ``field_iterations`` steps and
+        stage 3 the first ``iterations`` Adam steps of ``schedule``
+        (:meth:`RefineSchedule.truncated`), whatever the clock says, at
+        ``threads`` torch threads (default :data:`FIXED_THREADS`). With the
+        same target, seed, iterations, field_iterations, threads, octcl
+        version and device the output file is the same, byte for byte
+        (``docs/reproducibility.md``). A deadline run's result says how to
+        run its schedule this way (:attr:`InvertResult.reproduce`).
+    field_iterations : int
+        Stage 1's Adam steps (in deadline mode: at most, within its time share).
+    threads : int, optional
+        torch's CPU thread count for the whole run. In deadline mode it is
+        otherwise chosen by timing steps, which follows the machine's load.
+    name : str, optional
+        The target's name in messages and the result; default: the path, or
+        ``"target"`` for an array.
 
     Returns
     -------
@@ -331,9 +354,14 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     Raises
     ------
     ImageFormatError
-        The target is not a usable B-scan (:func:`read_target`).
+        The target is not a usable B-scan (:func:`octcl.host.target.check_target`).
     ValueError
-        A budget that is not a positive number.
+        A budget that is not a positive number, iterations beyond the
+        schedule, a thread or stage-1 iteration count below 1.
+    TimeBudgetExceeded
+        A fixed schedule did not end within the budget; the output then
+        holds the best phantom scored so far (or nothing, if the budget ran
+        out before stage 2), not the schedule's result.
     """
     from octcl._scanner_op import ScannerKernels
 
@@ -343,44 +371,74 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     started = time.monotonic()
     if not (isinstance(time_budget_s, (int, float)) and time_budget_s > 0 and math.isfinite(time_budget_s)):
         raise ValueError(f"time_budget_s must be a positive number of seconds, got {time_budget_s!r}")
+    for label, count in (("threads", threads), ("field_iterations", field_iterations)):
+        if count is not None and not (isinstance(count, int) and count >= 1):
+            raise ValueError(f"{label} must be a whole number ≥ 1, got {count!r}")
+    fixed = iterations is not None
+    if fixed:
+        schedule = schedule.truncated(iterations)
+        threads = FIXED_THREADS if threads is None else threads
     deadline = started + time_budget_s
-    if not isinstance(target_path, np.ndarray):
-        target_path = Path(target_path)
     output_path = Path(output_path)
-    target = read_target(target_path, config)
+    if isinstance(target, (str, os.PathLike)):
+        name = str(target) if name is None else name
+        target = read_target(target, config)
+    else:
+        name = "target" if name is None else name
+        target = check_target(target, config, name)
     seconds, trace = {}, []
 
     def elapsed():
         return time.monotonic() - started
 
     tell = _ProgressReporter(progress, started, deadline - FINAL_RESERVE_S)
-    field_budget = min(FIELD_BUDGET_FRACTION * time_budget_s, FIELD_BUDGET_CAP_S)
-    tell("field", 0, 0)
-    fit = fit_field(target, config, time_budget_s=field_budget,
-                    progress=lambda i, n, loss: tell("field", i, n))
-    seconds["field"] = fit.seconds
-    trace.append({"time_s": elapsed(), "stage": "field", "iteration": fit.iterations,
-                  "loss": float(fit.losses[-1]) if fit.losses.size else None, "score": None})
+    field_budget = None if fixed else min(FIELD_BUDGET_FRACTION * time_budget_s, FIELD_BUDGET_CAP_S)
+    # In a fixed schedule the budget is only a safety ceiling, checked at
+    # every step; in deadline mode the stages fit themselves inside it.
+    ceiling = _Clock(None, deadline - FINAL_RESERVE_S if fixed else None)
+    writer = None
 
-    tell("decode", 0, 1)
-    start = time.monotonic()
-    phantom = _decode(fit, config, seed)
-    seconds["decode"] = time.monotonic() - start
-    writer = _CheckpointWriter(output_path, config, CHECKPOINT_INTERVAL_S)
-    writer.offer(phantom)
+    def field_step(iteration, steps, loss):
+        ceiling.check_ceiling(f"in stage 1 after {iteration} of {steps} iterations")
+        tell("field", iteration, steps)
 
-    tell("setup", 0, 1)
-    start = time.monotonic()
-    kernels = ScannerKernels(config)
-    exact_score = ExactScore(target_path)
-    seconds["setup"] = time.monotonic() - start
-    offset = elapsed()
     try:
-        result = refine(phantom, target_path, schedule, deadline=deadline - FINAL_RESERVE_S,
+        tell("field", 0, 0)
+        fit = fit_field(target_scan(target), config, iterations=field_iterations, time_budget_s=field_budget,
+                        threads=threads, progress=field_step)
+        seconds["field"] = fit.seconds
+        trace.append({"time_s": elapsed(), "stage": "field", "iteration": fit.iterations,
+                      "loss": float(fit.losses[-1]) if fit.losses.size else None, "score": None})
+
+        tell("decode", 0, 1)
+        start = time.monotonic()
+        phantom = _decode(fit, config, seed)
+        seconds["decode"] = time.monotonic() - start
+        writer = _CheckpointWriter(output_path, config, CHECKPOINT_INTERVAL_S)
+        writer.offer(phantom)
+
+        tell("setup", 0, 1)
+        start = time.monotonic()
+        kernels = ScannerKernels(config)
+        exact_score = ExactScore(target)
+        seconds["setup"] = time.monotonic() - start
+        ceiling.check_ceiling("before stage 3")
+        offset = elapsed()
+        result = refine(phantom, target, schedule, deadline=None if fixed else deadline - FINAL_RESERVE_S,
                         kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score,
-                        on_improvement=lambda improved, components: writer.offer(improved))
+                        on_improvement=lambda improved, components: writer.offer(improved),
+                        ceiling=ceiling.ceiling if fixed else None, threads=threads)
+    except TimeBudgetExceeded as exc:
+        if writer is not None:
+            writer.close()
+        holds = f"{output_path} holds the best phantom scored so far, not the schedule's result" \
+            if writer is not None and writer.writes else f"nothing was written to {output_path}"
+        raise TimeBudgetExceeded(
+            f"{name}: a fixed schedule ({field_iterations} + {schedule.total_iterations} iterations) did not fit "
+            f"the time budget of {time_budget_s:g} s ({exc}); give a larger budget. {holds}") from None
     finally:
-        writer.close()  # writes the best phantom if the interval held it back
+        if writer is not None:
+            writer.close()  # writes the best phantom if the interval held it back
     seconds["refine"] = elapsed() - offset
     seconds["checkpoint_writes"] = writer.seconds
     trace += [{**entry, "time_s": entry["time_s"] + offset} for entry in result.trace]
@@ -388,18 +446,21 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     tell("done", result.iterations, schedule.total_iterations, done=True)
 
     outcome = InvertResult(
-        target="array" if isinstance(target_path, np.ndarray) else str(target_path), output=str(output_path),
-        score=result.components["mean"],
+        target=name, output=str(output_path), score=result.components["mean"],
         components=result.components, initial_score=result.initial_components["mean"],
         scatterers=len(result.phantom), iterations=result.iterations, seconds=seconds,
         checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
-        stopped_by_deadline=result.stopped_by_deadline, seed=seed)
+        stopped_by_deadline=result.stopped_by_deadline, seed=seed, field_iterations=fit.iterations,
+        fixed_schedule=fixed, threads=threads,
+        reproduce=f"--seed {seed} --iterations {result.iterations} --field-iterations {fit.iterations} "
+                  f"--threads {FIXED_THREADS if threads is None else threads}")
     if report_path is not None:
         contents = {
             **outcome.as_dict(),
             "initial_components": result.initial_components,
             "settings": {"time_budget_s": time_budget_s, "field_budget_s": field_budget,
-                         "field_iterations": fit.iterations, "field_threads": fit.threads,
+                         "field_iterations_planned": field_iterations, "field_threads": fit.threads,
+                         "refine_threads": result.torch_threads,
                          "schedule": dataclasses.asdict(schedule), "config": dataclasses.asdict(config),
                          "checkpoint_interval_s": CHECKPOINT_INTERVAL_S},
             "refine_timings_s": result.timings_s,
@@ -410,4 +471,5 @@ def invert(target_path, output_path, time_budget_s: float = 600.0, seed: int = 0
     return outcome
 
 
-__all__ = ["CHECKPOINT_INTERVAL_S", "InvertProgress", "InvertResult", "invert", "peak_memory_mib", "read_target"]
+__all__ = ["CHECKPOINT_INTERVAL_S", "FIELD_ITERATIONS", "FIXED_THREADS", "InvertProgress", "InvertResult",
+           "TimeBudgetExceeded", "invert", "peak_memory_mib", "read_target"]

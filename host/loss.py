@@ -35,8 +35,8 @@ computed once and only the rendering goes through the network each call.
 
 :class:`ExactScore` is the quantity the loss stands in for: the eight
 official components (:mod:`octcl.scorer`) of a rendering's 8-bit levels
-against the target PNG, bit for bit as the scorer computes them from the
-saved files.
+against the target, bit for bit as the scorer computes them from the saved
+files.
 """
 
 from __future__ import annotations
@@ -53,6 +53,8 @@ from octcl import scorer
 from octcl._lpips import lpips_network
 from octcl._msssim import msssim_torch
 from octcl.maps import map_levels, maps_torch
+
+from .target import target_scan, target_struct_for_metrics
 
 #: ∂P/∂D of the straight-through quantiser: P = floor(256·D)/255 on average.
 QUANTISER_SLOPE = 256.0 / 255.0
@@ -222,18 +224,17 @@ def scan_of_levels(levels: np.ndarray) -> np.ndarray:
     float32, then their float32 mean), so the processor's maps of it are
     those of the saved scan, bit for bit.
     """
-    rgb = np.repeat(np.asarray(levels, dtype=np.uint8)[..., None], 3, axis=2)
-    return np.mean(np.divide(rgb, 255, dtype=np.float32), axis=2)
+    return target_scan(np.asarray(levels, dtype=np.uint8))
 
 
 class ExactScore:
-    """The eight official score components of rendered levels against a target scan.
+    """The eight official score components of rendered levels against a target.
 
     Parameters
     ----------
-    target : str, Path or ndarray
-        The target B-scan PNG (256×512), or its grey levels as a ``uint8``
-        array, scored as the grey RGBA PNG of them that the scanner writes.
+    target : ndarray of uint8
+        The target B-scan (256×512), in either form of :mod:`octcl.host.target`
+        (:func:`octcl.host.target.read_target` reads one from a PNG).
 
     Notes
     -----
@@ -242,23 +243,23 @@ class ExactScore:
     checkpoints only.
     """
 
-    def __init__(self, target):
-        self.target_maps = self._metric_maps(target) if isinstance(target, np.ndarray) \
-            else scorer._scan_maps_for_metrics(target)
+    def __init__(self, target: np.ndarray):
+        scan = target_scan(target)
+        if scan.shape != scorer.SCAN_SHAPE:
+            raise ValueError(f"the target is {scan.shape[0]}x{scan.shape[1]}, the scorer takes "
+                             f"{scorer.SCAN_SHAPE[0]}x{scorer.SCAN_SHAPE[1]}")
+        self.target_maps = scorer._maps_for_metrics(target_struct_for_metrics(target), scan)
 
     @staticmethod
     def maps_of_levels(levels: np.ndarray) -> dict[str, np.ndarray]:
         """The Struct, OAC, SC and RSC 8-bit maps of a scan saved with these levels."""
         return {"Struct": levels, **map_levels(scan_of_levels(levels))}
 
-    @classmethod
-    def _metric_maps(cls, levels: np.ndarray) -> dict[str, np.ndarray]:
-        """The four maps of these levels as the official metric reads their PNGs."""
-        return {name: scorer._levels_for_metrics(image) for name, image in cls.maps_of_levels(levels).items()}
-
     def __call__(self, levels: np.ndarray) -> dict[str, float]:
         """``msssim_<map>`` and ``one_minus_lpips_<map>`` for the four maps, and ``mean``."""
-        components = scorer._score_grey_maps(self.target_maps, self._metric_maps(levels))
+        predicted = {name: scorer._levels_for_metrics(image)
+                     for name, image in self.maps_of_levels(levels).items()}
+        components = scorer._score_grey_maps(self.target_maps, predicted)
         components["mean"] = float(np.mean([components[name] for name in scorer.COMPONENTS]))
         return components
 

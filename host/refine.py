@@ -41,7 +41,10 @@ moments at a lower learning rate, from the best phantom so far) keep the
 best of the parent and their own checkpoints, as in the published schedule.
 
 Everything stops at a deadline (``time.monotonic()``), checked before every
-iteration and every exact evaluation against their measured durations.
+iteration and every exact evaluation against their measured durations. Without
+one (a fixed schedule, :meth:`RefineSchedule.truncated`) no decision depends on
+the clock: with a fixed thread count the result depends only on the inputs,
+the schedule and the device (``docs/reproducibility.md``).
 
 Cost on two CPU cores (PoCL), 280k scatterers, idle machine: 0.76 s an
 iteration — set_phantom 0.12 s, forward 0.09 s, loss 0.40 s (two threads),
@@ -53,6 +56,7 @@ schedule take some 310 s idle: 0.99900 → 0.99964 on Scan_Exp2_Layers_A and
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -61,11 +65,12 @@ import numpy as np
 import torch
 
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
-from octcl.phantom import Phantom
+from octcl.phantom import SIGNIFICANT_DIGITS, Phantom, _round_significant
 from octcl.render import Rendering, display_vjp
 
 from .field import _available_cores
-from .loss import DisplayLoss, ExactScore, LossWeights, scan_of_levels
+from .loss import DisplayLoss, ExactScore, LossWeights
+from .target import target_scan
 
 #: Largest energy of the task contract, in % (u ≤ ln 100).
 MAX_ENERGY_PCT = 100.0
@@ -136,6 +141,8 @@ class RefineSchedule:
         normal number) changes no rendering.
     loss_weights : LossWeights
         Weights of the loss terms (the LPIPS ones apply in ``lpips`` phases).
+    max_iterations : int, optional
+        Stop after this many Adam steps, restarts included (:meth:`truncated`).
     """
 
     phases: tuple[Phase, ...] = (Phase(20, 0.002, 0.05), Phase(140, 0.002, 0.02),
@@ -147,6 +154,7 @@ class RefineSchedule:
     epsilon: float = 1e-20
     min_log_energy: float = math.log(1e-20)
     loss_weights: LossWeights = field(default_factory=LossWeights)
+    max_iterations: int | None = None
 
     def __post_init__(self):
         if self.score_every < 1:
@@ -155,6 +163,8 @@ class RefineSchedule:
             raise ValueError("need 0 ≤ beta1, beta2 < 1 and epsilon > 0")
         if not self.min_log_energy < math.log(MAX_ENERGY_PCT):
             raise ValueError(f"min_log_energy must be below ln 100, got {self.min_log_energy}")
+        if self.max_iterations is not None and self.max_iterations < 0:
+            raise ValueError(f"max_iterations must be ≥ 0, got {self.max_iterations}")
 
     @classmethod
     def published(cls) -> "RefineSchedule":
@@ -172,7 +182,27 @@ class RefineSchedule:
 
     @property
     def total_iterations(self) -> int:
-        return sum(p.iterations for p in self.phases + self.restarts)
+        """Adam steps the schedule runs: its phases and restarts, or ``max_iterations`` if fewer."""
+        planned = sum(p.iterations for p in self.phases + self.restarts)
+        return planned if self.max_iterations is None else min(planned, self.max_iterations)
+
+    def truncated(self, iterations: int) -> "RefineSchedule":
+        """The schedule stopped after its first ``iterations`` Adam steps (:attr:`max_iterations`).
+
+        It runs what a deadline run that stopped after that many steps ran:
+        phases and then restarts in order, with their exact evaluations on
+        the same steps as in the whole schedule, plus one of the last iterate.
+
+        Raises
+        ------
+        ValueError
+            ``iterations`` negative or beyond the schedule's Adam steps.
+        """
+        planned = sum(p.iterations for p in self.phases + self.restarts)
+        if not (isinstance(iterations, int) and 0 <= iterations <= planned):
+            raise ValueError(f"iterations must be a whole number in [0, {planned}] (the schedule's Adam "
+                             f"steps), got {iterations!r}")
+        return dataclasses.replace(self, max_iterations=iterations)
 
 
 @dataclass
@@ -254,17 +284,8 @@ class RefineResult:
 
 
 def saved_precision(values: np.ndarray) -> np.ndarray:
-    """``values`` rounded to 6 significant digits, as :meth:`Phantom.save` writes them (``%.5e``).
-
-    v ↦ round(v·10^{5−e})·10^{e−5} with e = ⌊log10 |v|⌋; it differs from
-    parsing the printed text at most in the last bit (or, for a product
-    that lands within rounding error of a half, in the 6th digit).
-    """
-    values = np.asarray(values, dtype=np.float64)
-    magnitude = np.abs(values)
-    exponent = np.floor(np.log10(magnitude, out=np.zeros_like(magnitude), where=magnitude > 0))
-    scale = 10.0 ** (5 - exponent)
-    return np.round(values * scale) / scale
+    """``values`` as the phantom file holds them: rounded to ``SIGNIFICANT_DIGITS`` as :meth:`Phantom.save` writes them."""
+    return _round_significant(values, SIGNIFICANT_DIGITS)
 
 
 class _Adam:
@@ -292,12 +313,26 @@ class _Adam:
             param -= lr * (m / first_correction) / (np.sqrt(v / second_correction) + self.epsilon)
 
 
-class _Clock:
-    """Deadline bookkeeping: does an operation of measured duration still fit?"""
+class TimeBudgetExceeded(RuntimeError):
+    """A run with a fixed schedule reached its time ceiling before the schedule's end."""
 
-    def __init__(self, deadline: float | None):
+
+class _Clock:
+    """Deadline bookkeeping: does an operation of measured duration still fit?
+
+    Without a deadline everything fits, and no decision depends on the clock;
+    a ``ceiling`` is then only a safety limit: :meth:`check_ceiling` raises
+    past it.
+    """
+
+    def __init__(self, deadline: float | None, ceiling: float | None = None):
         self.deadline = math.inf if deadline is None else deadline
+        self.ceiling = math.inf if ceiling is None else ceiling
         self.durations: dict[str, float] = {}
+
+    def check_ceiling(self, where: str) -> None:
+        if time.monotonic() > self.ceiling:
+            raise TimeBudgetExceeded(f"the time budget ran out {where}")
 
     def seconds_left(self) -> float:
         return self.deadline - time.monotonic()
@@ -308,6 +343,19 @@ class _Clock:
 
     def record(self, name: str, seconds: float) -> None:
         self.durations[name] = seconds
+
+
+class _FixedThreads:
+    """torch's thread count held at ``threads`` for the whole refinement (reproducible runs)."""
+
+    def __init__(self, threads: int):
+        self.threads = threads
+
+    def before_call(self) -> None:
+        torch.set_num_threads(self.threads)
+
+    def after_call(self, kind, seconds: float) -> None:
+        pass
 
 
 class _ThreadChooser:
@@ -360,16 +408,16 @@ class _ThreadChooser:
 class _Refiner:
     """Rendering, loss, gradients and exact scores of one phantom's (z, u)."""
 
-    def __init__(self, x_um, y_um, kernels, target_scan, exact_score, schedule, config, clock):
+    def __init__(self, x_um, y_um, kernels, scan, exact_score, schedule, config, clock, threads):
         self.x_um, self.y_um = x_um, y_um
         self.kernels, self.exact_score, self.schedule = kernels, exact_score, schedule
         self.depth_um = config.depth_range_um
-        self.losses = {lpips: DisplayLoss(target_scan, weights)
+        self.losses = {lpips: DisplayLoss(scan, weights)
                        for lpips, weights in ((True, schedule.loss_weights),
                                               (False, schedule.loss_weights.without_lpips()))}
         self.clock = clock
         self.timings = dict.fromkeys(("set_phantom", "forward", "loss", "adjoint", "adam", "exact_score"), 0.0)
-        self.threads = _ThreadChooser(_available_cores())
+        self.threads = _ThreadChooser(_available_cores()) if threads is None else _FixedThreads(threads)
 
     def _timed(self, name, function, *args, **kwargs):
         start = time.perf_counter()
@@ -410,21 +458,24 @@ class _Refiner:
         np.clip(log_energy, self.schedule.min_log_energy, math.log(MAX_ENERGY_PCT), out=log_energy)
 
     def round_as_saved(self, z_um, log_energy) -> None:
-        """Put z and E on the 6-significant-digit grid of the phantom file, in place.
+        """Put z and E on the grid of the phantom file (``SIGNIFICANT_DIGITS``, 8), in place.
 
         A scored iterate is exactly what a checkpoint writes, so its score is
-        the file's: at z ≥ 1000 µm the file's last digit is 0.01 µm, a carrier
-        phase step of 0.097 rad, and rounding moved a refined phantom's score
-        by up to 7e−5 when it was scored before rounding.
+        the file's. With the 6 digits written before, the file's last digit
+        at z ≥ 1000 µm was 0.01 µm, a carrier phase step of 0.097 rad, and
+        rounding moved a refined phantom's score by up to 7e−5 when it was
+        scored before rounding; with 8 it is 1e−4 µm, below the smallest
+        depth step of the schedule.
         """
         z_um[:] = saved_precision(z_um)
         log_energy[:] = np.log(np.minimum(saved_precision(np.exp(log_energy)), MAX_ENERGY_PCT))
         self.constrain(z_um, log_energy)
 
 
-def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSchedule(),
+def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = RefineSchedule(),
            deadline: float | None = None, kernels=None, config: ScannerConfig = DEFAULT_CONFIG,
-           progress=None, on_improvement=None, exact_score: ExactScore | None = None) -> RefineResult:
+           progress=None, on_improvement=None, exact_score: ExactScore | None = None,
+           ceiling: float | None = None, threads: int | None = None) -> RefineResult:
     """Refine depths and energies of ``phantom`` towards the target scan.
 
     Parameters
@@ -432,15 +483,16 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
     phantom : Phantom
         The starting phantom (stage 2); its x and y are kept. Energies of 0
         start at the energy floor e^{min_log_energy}.
-    target_path : str, Path or ndarray
-        The target B-scan PNG (256×512), or its ``uint8`` grey levels.
+    target : ndarray of uint8
+        The target B-scan (256×512) in either form of :mod:`octcl.host.target`.
     schedule : RefineSchedule
         Phases, restarts, checkpoints and Adam settings.
     deadline : float, optional
         ``time.monotonic()`` value by which :func:`refine` returns. An
         iteration or exact evaluation starts only if its last measured
         duration ends before it; the input phantom's own evaluation always
-        runs.
+        runs. Without one, the schedule runs to its end and no decision is
+        taken from the clock.
     kernels : octcl._scanner_op.ScannerKernels, optional
         Reuse compiled kernels (built for ``config`` if not given).
     config : ScannerConfig
@@ -451,7 +503,15 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
         ``on_improvement(phantom, components)`` whenever the best exact score
         improves on the best so far (the input phantom's at first).
     exact_score : ExactScore, optional
-        The target's scorer, if already built.
+        The target's scorer, if already built (the same ``target``).
+    ceiling : float, optional
+        ``time.monotonic()`` value past which :class:`TimeBudgetExceeded` is
+        raised (checked before every iteration): a safety limit for runs
+        without a deadline.
+    threads : int, optional
+        torch's thread count for the whole refinement (loss and exact
+        scores). By default it is chosen by timing (:class:`_ThreadChooser`),
+        which makes the result depend on the machine's load.
 
     Returns
     -------
@@ -459,25 +519,26 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
 
     Notes
     -----
-    The loss (torch) runs with one thread or with all cores, whichever is
-    faster at the time (:class:`_ThreadChooser`); the caller's setting is
-    restored on return.
-    """
-    from octcl._io import read_scan
-    from octcl.scorer import SCAN_SHAPE
+    Without ``threads`` the loss (torch) runs with one thread or with all
+    cores, whichever is faster at the time (:class:`_ThreadChooser`); the
+    caller's setting is restored on return. With ``threads`` and no
+    ``deadline``, the result depends only on the inputs, the schedule, the
+    thread count and the device (``docs/reproducibility.md``).
 
+    Raises
+    ------
+    TimeBudgetExceeded
+        Past ``ceiling``.
+    """
     started = time.monotonic()
-    clock = _Clock(deadline)
+    clock = _Clock(deadline, ceiling)
     if kernels is None:
         from octcl._scanner_op import ScannerKernels
 
         kernels = ScannerKernels(config)
-    exact_score = exact_score or ExactScore(target_path)
+    exact_score = exact_score or ExactScore(target)
     x_um, y_um = saved_precision(phantom.x_um), saved_precision(phantom.y_um)
-    target_scan = scan_of_levels(target_path) if isinstance(target_path, np.ndarray) \
-        else read_scan(target_path, SCAN_SHAPE)
-    refiner = _Refiner(x_um, y_um, kernels, target_scan, exact_score,
-                       schedule, config, clock)
+    refiner = _Refiner(x_um, y_um, kernels, target_scan(target), exact_score, schedule, config, clock, threads)
     z_um = np.array(phantom.z_um, dtype=np.float64)
     with np.errstate(divide="ignore"):
         log_energy = np.log(phantom.energy_pct)
@@ -493,11 +554,7 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
         # the phantom; exp(ln 100) can round to just above 100.
         return Phantom(x_um, y_um, z.copy(), np.minimum(np.exp(u), MAX_ENERGY_PCT))
 
-    initial = refiner.score(refiner.render(z_um, log_energy, for_adjoint=False))
-    best = Checkpoint(z_um.copy(), log_energy.copy(), initial, "initial", 0)
-    last_score = (initial["mean"], time.monotonic())
-    trace.append({"time_s": last_score[1] - started, "stage": "initial", "iteration": 0,
-                  "loss": None, "score": initial["mean"]})
+    best = last_score = None  # the best checkpoint; (score, time) of the last exact evaluation
 
     def report(stage):
         if progress:
@@ -515,9 +572,11 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
         """Adam from (z, u) through ``phases``; score after the given step counts and at the end."""
         nonlocal stopped, iterations
         adam = _Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
-        plan = [phase for phase in phases for _ in range(phase.iterations)]
+        # The steps of these phases that the schedule's iteration count still allows.
+        plan = [phase for phase in phases for _ in range(phase.iterations)][:total - iterations]
         for step in range(len(plan) + 1):
             last = step == len(plan)
+            clock.check_ceiling(f"in stage 3 ({stage}) after {iterations} of {total} iterations")
             if not last and not clock.fits("render", "loss_adjoint", "adam", "render", "score"):
                 stopped, last = True, True
             if last:  # score the final iterate (not rendered yet), if that still fits
@@ -555,12 +614,18 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
 
     main_length = sum(p.iterations for p in schedule.phases)
     previous_threads = torch.get_num_threads()
-    report("refine")
     try:
+        refiner.threads.before_call()  # exact scores, the first included, at the loss's thread count
+        initial = refiner.score(refiner.render(z_um, log_energy, for_adjoint=False))
+        best = Checkpoint(z_um.copy(), log_energy.copy(), initial, "initial", 0)
+        last_score = (initial["mean"], time.monotonic())
+        trace.append({"time_s": last_score[1] - started, "stage": "initial", "iteration": 0,
+                      "loss": None, "score": initial["mean"]})
+        report("refine")
         run("refine", schedule.phases, z_um, log_energy,
             set(range(schedule.score_every, main_length, schedule.score_every)))
         for index, restart in enumerate(schedule.restarts, start=1):
-            if stopped:
+            if stopped or iterations == total:
                 break
             run(f"restart {index}", (restart,), best.z_um.copy(), best.log_energy.copy(),
                 {restart.iterations // 2})
@@ -573,5 +638,5 @@ def refine(phantom: Phantom, target_path, schedule: RefineSchedule = RefineSched
                         torch_threads=refiner.threads.threads)
 
 
-__all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule", "refine",
-           "saved_precision"]
+__all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule",
+           "TimeBudgetExceeded", "refine", "saved_precision"]

@@ -1,26 +1,38 @@
 /*
- * The Virtual Scanner (shared/physics.md §2) and its adjoint, one A-scan per
- * work-item.
+ * The Virtual Scanner (shared/physics.md §2) and its adjoint, in two
+ * variants of the same maths:
+ *
+ *   render_forward / render_adjoint            one work-item per A-scan
+ *                                              (CPUs: long sequential loops
+ *                                              vectorise and cache well);
+ *   render_forward_group / render_adjoint_group one work-group of WG_SIZE
+ *                                              work-items per A-scan (GPUs:
+ *                                              scans, gathers and FFTs in
+ *                                              local memory, no per-A-scan
+ *                                              array in private memory).
  *
  * Forward, for A-scan i at lateral position x_i:
- *   1. Visit the candidate scatterers in depth order. Candidates sit in the
- *      three lateral bins around the A-scan (a bin is ASCANS_PER_BIN A-scans
- *      wide, at least the shadowing reach), each bin sorted by depth rank on
- *      the host; a three-way merge by rank gives the A-scan's depth order.
+ *   1. Visit the candidate scatterers in depth order. A-scan i belongs to
+ *      lateral bin c (a bin is P = ASCANS_PER_BIN A-scans wide, P·Δx ≥ the
+ *      shadowing reach); its candidates are the host-made list c: the
+ *      scatterers of bins c − 1, c, c + 1 in the scanner's depth order.
  *   2. For a candidate m within the shadowing reach, d² = (x_i − x_m)² + y_m²
- *      < R²·w0², the beam amplitude is b_m = exp(−d²/w0²)·a_m. If it also lies
- *      in the contribution window (d² < 3·w0², decided on the host in float64
- *      and passed as the A-scan range [first, last], so that float32 rounding
- *      never flips a scatterer at the window's edge in or out) it adds
- *      c_m = T·b_m·e^{iφ_m}
- *      (φ_m = −2·k0·z_m mod 2π, from the host in float64) to the A-scan.
- *      Then T ← T·(1 − min(b_m², 1)): the depth-cumulative shadowing.
+ *      < R²·w0², the beam amplitude is b_m = exp(−d²/w0²)·a_m and its
+ *      energy t_m = min(b_m², 1). If m also lies in the contribution window
+ *      (d² < 3·w0², decided on the host in float64 and passed as the A-scan
+ *      range [first, last], so that float32 rounding never flips a scatterer
+ *      at the window's edge in or out) it adds
+ *      c_m = T_m·b_m·e^{iφ_m}
+ *      (φ_m = −2·k0·z_m mod 2π, from the host in float64) to the A-scan, with
+ *      T_m = Π_{k before m} (1 − t_k): the depth-cumulative shadowing.
  *   3. The spectrum S(s) = Σ_m c_m·e^{−i·s·x_m}, x_m = 2·δk·z_m, is a type-1
  *      non-uniform DFT. Each c_m is spread onto a 2×-oversampled periodic grid
  *      of GRID = 2·NZ points with the "exponential of semicircle" kernel
- *      ψ(t) = exp(β·(sqrt(1 − t²) − 1)) over SPREAD_WIDTH points; one FFT of
- *      the grid then gives ψ̂(s)·S(s) (Barnett, Magland & af Klinteberg,
- *      SIAM J. Sci. Comput. 41 (2019) C479).
+ *      ψ(t) = exp(β·(sqrt(1 − t²) − 1)) over SPREAD_WIDTH = W points: grid
+ *      points first_m … first_m + W − 1 (mod GRID), t = (first_m − p_m + k)·2/W
+ *      for the k-th, p_m = x_m·GRID/(2π) (first_m and first_m − p_m come from
+ *      the host in float64). One FFT of the grid then gives ψ̂(s)·S(s)
+ *      (Barnett, Magland & af Klinteberg, SIAM J. Sci. Comput. 41 (2019) C479).
  *   4. X(s) = H(s)·FFT(grid)(s) with H(s) = w(s) / (ψ̂(s)·NZ) (Hann window,
  *      kernel deconvolution and the 1/NZ of the inverse DFT in one table),
  *      and A[n] = Σ_s X(s)·e^{2πi·s·n/NZ}: the complex A-scan.
@@ -30,29 +42,59 @@
  *   unnormalised), gathered with the same kernel: c̄_m = Σ ψ·b̄, c̄'_m = Σ ψ·b̄'.
  *   With v_m = T_m·b_m and R_m = Re(conj(c̄_m)·e^{iφ_m}) = ∂L/∂v_m:
  *     ∂L/∂z_m = Re(−2i·v_m·e^{iφ_m}·(k0·conj(c̄_m) + δk·conj(c̄'_m)))
- *     ∂L/∂u_m = R_m·v_m/2 − T_m·D_m·b_m²   (u = ln E, ∂b/∂u = b/2;
- *                                            the second term only if b_m < 1)
- *   where D_m = Σ_{j deeper} R_j·b_j·Π_{m<k<j}(1 − t_k) is accumulated as a
- *   suffix sum while the candidates are visited in reverse depth order:
- *   D ← R_m·b_m + (1 − t_m)·D. Nothing is divided by (1 − t), so a mirror
- *   (t = 1) gives finite, exact gradients. T_m comes from the forward pass.
+ *     ∂L/∂u_m = R_m·v_m/2 − T_m·D_m·t_m   (u = ln E, ∂b/∂u = b/2, ∂t/∂u = t;
+ *                                           the second term only if t_m < 1)
+ *   where D_m = Σ_{j deeper} R_j·b_j·Π_{m<k<j}(1 − t_k) follows the affine
+ *   recurrence D ← R_m·b_m + (1 − t_m)·D over the candidates in reverse
+ *   depth order. Nothing is divided by (1 − t), so a mirror (t = 1) gives
+ *   finite, exact gradients. T_m comes from the forward pass.
+ *
+ * Scale. Amplitudes arrive as a_m = mantissa_m·2^{exponent_m} (frexp on the
+ * host, mantissa in [½, 1); a zero amplitude has mantissa 0 and the exponent
+ * NO_AMPLITUDE). ascan_scale finds e_i, the largest exponent among the
+ * scatterers in A-scan i's contribution window (a pass over the scatterers,
+ * not over every A-scan's list, which cost the forward pass a third more
+ * time on a CPU), and the render kernels compute the
+ * contributions relative to 2^{e_i}: b̃_m = exp(−d²/w0²)·mantissa_m·
+ * 2^{exponent_m − e_i} ≤ 1. The A-scan comes out relative to 2^{e_i}
+ * (scale_exponent[i]; the host multiplies by it in float64 and scales Ā by
+ * the same factor on the way back), while the shadowing energy
+ * t_m = (exp(−d²/w0²)·mantissa_m)²·2^{2·exponent_m} keeps its absolute
+ * meaning. So float32 kernels render every legal phantom as float64 does
+ * whatever its overall energy: what still underflows is a contribution
+ * 2^{−126} below the A-scan's own largest one, or a shadow energy t below
+ * 2^{−149} (1 − t is 1 in float64 as well), or a transmission below 2^{−126}
+ * behind scatterers that are themselves ≥ 10^{38} brighter; all are far
+ * below the 51 dB display. The gradients do not depend on the scale.
  *
  * Lateral positions are offsets from the first A-scan of the scatterer's bin
- * (x_m − x_{P·(c−1)} ∈ [0, P·Δx)), so that x_i − x_m = (i − P·(c−1))·Δx −
- * offset_m keeps float32 accuracy far from the centre of the scan.
+ * (x_m − x_{P·(bin_m − 1)} ∈ [0, P·Δx)), so that x_i − x_m = (i − P·(bin_m −
+ * 1))·Δx − offset_m keeps float32 accuracy far from the centre of the scan.
  *
- * Every (A-scan, scatterer) pair has its own slot, so no atomics are needed:
- * scatterer m in bin c serves A-scans P·(c − 2) … P·(c + 1) − 1, slot
- * i − P·(c − 2) ∈ [0, 3P). The forward pass stores T there, the adjoint
- * overwrites it with the pair's (∂L/∂u, ∂L/∂z), and reduce_slots sums them.
+ * Lists. The host sends per-scatterer arrays (those of x and y once, those
+ * of z and E per call) and, per list, its scatterers in depth order
+ * (entry_scatterer); gather_entries copies each entry's data into one Entry
+ * record, so that the render kernels stream through a list's records in
+ * order instead of jumping through the scatterer arrays (on a CPU the
+ * random reads made the work-item forward pass 3× slower).
+ *
+ * Every (A-scan, list entry) pair has its own slot, so no atomics are
+ * needed: entry j of list c serves the P A-scans of bin c, slot
+ * (i mod P)·ENTRIES + j. The forward pass stores T there (and, in the
+ * work-group variant, T·b̃ for its gather), the adjoint overwrites every slot
+ * of its A-scan with the pair's (∂L/∂u, ∂L/∂z) (0 for pairs out of reach or
+ * not visited), and reduce_slots sums each scatterer's slots in a fixed
+ * order: the result does not depend on scheduling.
  *
  * Compile-time constants: NZ, GRID (= 2·NZ, a power of two), LOG2_GRID,
- * LOG2_NZ, SPREAD_WIDTH (≤ 16); OCTCL_DOUBLE selects double precision.
+ * LOG2_NZ, SPREAD_WIDTH (≤ 16), WG_SIZE (work-group variant, a power of
+ * two); OCTCL_DOUBLE selects double precision.
  */
 
 #ifdef OCTCL_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 typedef double real;
+typedef double2 real2;      /* a double-word number (hi, lo) or an affine map (a, b) */
 typedef double2 complex_t;
 #if SPREAD_WIDTH <= 8
 typedef double8 taps_t;
@@ -63,6 +105,7 @@ typedef double16 taps_t;
 #endif
 #else
 typedef float real;
+typedef float2 real2;
 typedef float2 complex_t;
 #if SPREAD_WIDTH <= 8
 typedef float8 taps_t;
@@ -76,8 +119,8 @@ typedef float16 taps_t;
 typedef struct {
     int a_scans;          /* Nx */
     int ascans_per_bin;   /* P: a bin is P A-scans wide, P·Δx ≥ shadowing reach */
-    int bins;             /* number of lateral bins */
-    int slots;            /* 3·P slots per scatterer */
+    int entries;          /* ENTRIES: list entries in all, the slots' row length */
+    int padding;
     real pitch_um;        /* Δx between A-scans */
     real inv_w0_sq;       /* 1/w0², µm⁻² */
     real shadow_d2;       /* R²·w0², µm² */
@@ -87,18 +130,123 @@ typedef struct {
     real min_transmission;/* an A-scan stops once T ≤ this (0: only behind a mirror) */
 } ScannerParams;
 
-inline complex_t cmul(complex_t a, complex_t b) {
+static inline complex_t cmul(complex_t a, complex_t b) {
     return (complex_t)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
 }
 
-inline complex_t cconj_mul(complex_t a, complex_t b) { /* conj(a)·b */
+static inline complex_t cconj_mul(complex_t a, complex_t b) { /* conj(a)·b */
     return (complex_t)(a.x * b.x + a.y * b.y, a.x * b.y - a.y * b.x);
 }
+
+/* exp(−d²/w0²)·mantissa: the beam amplitude without its binary exponent. */
+static inline real beam_mantissa(const ScannerParams p, real d2, real mantissa) {
+    return exp(-d2 * p.inv_w0_sq) * mantissa;
+}
+
+/* t = min(b², 1), b = beam_mantissa·2^exponent: the absolute shadowing energy. */
+static inline real shadow_energy(real beam, int exponent) {
+    return fmin(ldexp(beam * beam, 2 * exponent), (real)1);
+}
+
+/* ψ(t) = exp(β·(sqrt(1 − t²) − 1)) at t = (offset + k)·2/W, offset = first − p. */
+static inline real spread_weight(real offset, int k, real beta) {
+    const real t = (offset + k) * (real)(2.0 / SPREAD_WIDTH);
+    return exp(beta * (sqrt(fmax(1 - t * t, (real)0)) - 1));
+}
+
+/* Double-word (hi + lo) products, for the transmission T = Π (1 − t): a deep
+ * scatterer sits below up to 300,000 others whose factors 1 − t round in the
+ * 7th digit, and rounded float32 products would drift by ~1e−3. The
+ * remainder of 1 − t is exact (Fast2Sum, t ≤ 1) and so is a product's
+ * rounding error (fma), so T keeps ~1e−7 relative accuracy. */
+static inline real2 one_minus(real t) { /* 1 − t as hi + lo */
+    const real hi = 1 - t;
+    return (real2)(hi, (1 - hi) - t);
+}
+
+static inline real2 dw_mul(real2 a, real2 b) {
+    const real product = a.x * b.x;
+    const real error = fma(a.x, b.x, -product) + (a.x * b.y + a.y * b.x);
+    const real hi = product + error;
+    return (real2)(hi, error - (hi - product));
+}
+
+/* The exponent of a zero amplitude: never the largest in a window. */
+#define NO_AMPLITUDE (-1 << 20)
+
+/* A scatterer as a list sees it. */
+typedef struct {
+    real x_offset_um;      /* x − x of the first A-scan of its bin */
+    real y_um;
+    real mantissa;         /* amplitude a = mantissa·2^exponent */
+    real tap_offset;       /* first_tap − p, p its position on the spreading grid */
+    complex_t carrier;     /* e^{iφ}, φ = −2·k0·z */
+    int bin;
+    int exponent;
+    int first_tap;
+    int window_first;      /* its contribution window: A-scans window_first … window_last */
+    int window_last;
+} Entry;
+
+/* sizeof(Entry) as this compiler lays it out, for the host's buffer. */
+__kernel void entry_size(__global int *size) { *size = sizeof(Entry); }
+
+/* Entry j of every list from the per-scatterer arrays (input order), and
+ * entry_index[3·m + k] = j for its scatterer m, which it holds as the k-th
+ * of its lists bin_m − 1 … bin_m + 1 (the reduction's map back). */
+__kernel void gather_entries(const ScannerParams p,
+                             __global const int *entry_scatterer, __global const int *list_start,
+                             __global const real *x_offset_um, __global const real *y_um,
+                             __global const int *bin, __global const int2 *window,
+                             __global const real *mantissa, __global const int *exponent,
+                             __global const int *first_tap, __global const real *tap_offset,
+                             __global const real *phase, __global Entry *entry,
+                             __global int *entry_index) {
+    const int j = get_global_id(0);
+    if (j >= p.entries) return;
+    const int m = entry_scatterer[j];
+    Entry e;
+    e.x_offset_um = x_offset_um[m];
+    e.y_um = y_um[m];
+    e.mantissa = mantissa[m];
+    e.tap_offset = tap_offset[m];
+    real cosine;
+    const real sine = sincos(phase[m], &cosine);
+    e.carrier = (complex_t)(cosine, sine);
+    e.bin = bin[m];
+    e.exponent = exponent[m];
+    e.first_tap = first_tap[m];
+    e.window_first = window[m].x;
+    e.window_last = window[m].y;
+    entry[j] = e;
+    int list = bin[m] + 1; /* the largest of its lists that starts at or before j */
+    while (list_start[list] > j) --list;
+    entry_index[3 * m + list - bin[m] + 1] = j;
+}
+
+/* d² = (x_i − x_m)² + y_m² of A-scan i and an entry, from its bin offset. */
+static inline real squared_distance(const ScannerParams p, int i, const Entry e) {
+    const real dx = (i - p.ascans_per_bin * (e.bin - 1)) * p.pitch_um - e.x_offset_um;
+    return dx * dx + e.y_um * e.y_um;
+}
+
+/* A-scan i is in the entry's contribution window (decided on the host). */
+static inline bool contributes(const Entry e, int i) {
+    return i >= e.window_first && i <= e.window_last;
+}
+
+/* The lists and the constant tables; shared by the forward and adjoint
+ * kernels of both variants. */
+#define SCENE_ARGUMENTS                                                             \
+    __global const Entry *entry, __global const int *list_start,                  \
+    __global const real *transfer, __global const complex_t *twiddle
+
+/* ================================================ one work-item per A-scan */
 
 /* In-place radix-2 FFT of length 1 << log2n on a private array:
  * a[k] ← Σ_n a[n]·exp(sign·2πi·k·n/len). twiddle[k] = exp(−2πi·k/GRID),
  * k < GRID/2; a shorter transform strides through it. */
-void fft(complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
+static void fft(complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
     const int n = 1 << log2n;
     for (int i = 1, j = 0; i < n; ++i) { /* bit-reversal permutation */
         int bit = n >> 1;
@@ -119,119 +267,69 @@ void fft(complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
     }
 }
 
-/* T ← T·(1 − t), carried as an unevaluated sum hi + lo (double-word
- * arithmetic). A deep scatterer sits below up to 300,000 others whose factors
- * 1 − t round in the 7th digit: rounded products would drift by ~1e−3 in
- * float32. The remainder of 1 − t is exact (Fast2Sum, t ≤ 1) and so is the
- * product's rounding error (fma), so T keeps ~1e−7 relative accuracy. */
-inline void attenuate(real *hi, real *lo, real t) {
-    const real factor = 1 - t;
-    const real factor_lo = (1 - factor) - t;
-    const real product = *hi * factor;
-    const real correction = fma(*hi, factor, -product) + (*hi * factor_lo + *lo * factor);
-    *hi = product + correction;
-    *lo = correction - (*hi - product);
-}
-
-/* Spreading-kernel weights ψ at the SPREAD_WIDTH grid points first_tap … of a
- * scatterer at grid position p: ψ((l − p)·2/W), zero for unused lanes. */
-inline taps_t spread_weights(real p, real beta, int *first_tap) {
+/* The W spreading weights of a scatterer as one vector (zero past W), so
+ * that the spreading loop vectorises on a CPU. */
+static inline taps_t spread_weights(real offset, real beta) {
 #if TAP_COUNT == 8
     const taps_t lane = (taps_t)(0, 1, 2, 3, 4, 5, 6, 7);
 #else
     const taps_t lane = (taps_t)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
 #endif
-    const real start = ceil(p - (real)(0.5 * SPREAD_WIDTH));
-    *first_tap = (int)start;
-    const taps_t t = (start - p + lane) * (real)(2.0 / SPREAD_WIDTH);
+    const taps_t t = (offset + lane) * (real)(2.0 / SPREAD_WIDTH);
     const taps_t weight = exp(beta * (sqrt(fmax(1 - t * t, (real)0)) - 1));
     return lane < (real)SPREAD_WIDTH ? weight : (taps_t)0;
 }
 
-/* The three-way merge of an A-scan's candidate bins in depth order: the next
- * candidate (smallest depth rank) forwards, or the previous one (largest
- * rank) backwards; −1 when the bins are exhausted. */
-inline int next_deeper(int *cursor, const int *end, __global const int *rank) {
-    int best = -1, best_rank = INT_MAX;
-    for (int b = 0; b < 3; ++b)
-        if (cursor[b] < end[b] && rank[cursor[b]] < best_rank) { best = b; best_rank = rank[cursor[b]]; }
-    return best < 0 ? -1 : cursor[best]++;
-}
-
-inline int next_shallower(int *cursor, const int *begin, __global const int *rank) {
-    int best = -1, best_rank = -1;
-    for (int b = 0; b < 3; ++b)
-        if (cursor[b] > begin[b] && rank[cursor[b] - 1] > best_rank) { best = b; best_rank = rank[cursor[b] - 1]; }
-    return best < 0 ? -1 : --cursor[best];
-}
-
-inline void candidate_bins(const ScannerParams p, int ascan, __global const int *bin_start,
-                           int *begin, int *end) {
-    const int centre = ascan / p.ascans_per_bin + 1; /* bins are shifted by one */
-    for (int b = 0; b < 3; ++b) {
-        begin[b] = bin_start[centre - 1 + b];
-        end[b] = bin_start[centre + b];
-    }
-}
-
-/* The scene as the host laid it out (scatterers bin-major, depth-rank-minor)
- * and the constant tables; shared by the forward and adjoint kernels. */
-#define SCENE_ARGUMENTS                                                             \
-    __global const real *x_offset_um, __global const real *y_um,                  \
-    __global const real *amplitude, __global const real *grid_pos,                \
-    __global const complex_t *carrier, __global const int *rank,                  \
-    __global const int *bin, __global const int *bin_start,                       \
-    __global const int2 *contributes_to,                                          \
-    __global const real *transfer, __global const complex_t *twiddle
-
-/* d² = (x_i − x_m)² + y_m² of A-scan i and scatterer m, from m's bin offset. */
-inline real squared_distance(const ScannerParams p, int i, int bin_m, real x_offset, real y) {
-    const real dx = (i - p.ascans_per_bin * (bin_m - 1)) * p.pitch_um - x_offset;
-    return dx * dx + y * y;
-}
-
-/* The (A-scan i, scatterer m) pair's own slot (see the header). */
-inline size_t slot_index(const ScannerParams p, int i, int m, int bin_m) {
-    return (size_t)m * p.slots + i - p.ascans_per_bin * (bin_m - 2);
+/*
+ * Scale: scale_exponent[i] = e_i, the largest exponent among the scatterers
+ * whose contribution window [first, last] holds A-scan i (NO_AMPLITUDE where
+ * none), one work-item per scatterer. A maximum does not depend on the order
+ * of the atomic updates, so the result is deterministic. scale_exponent must
+ * hold NO_AMPLITUDE on entry.
+ */
+__kernel void ascan_scale(__global const int2 *window, __global const int *exponent,
+                          __global int *scale_exponent, const int count) {
+    const int m = get_global_id(0);
+    if (m >= count || exponent[m] == NO_AMPLITUDE) return;
+    for (int i = window[m].x; i <= window[m].y; ++i) atomic_max(&scale_exponent[i], exponent[m]);
 }
 
 /*
- * Forward: complex A-scans a_scan[i·NZ + n].
- * Scatterer arrays are in bin-major, depth-rank-minor order (host sorted).
- * If slot_data is not null, T of each visited pair is stored for the adjoint
- * and the merge cursors where the A-scan stopped go to stop_cursor.
+ * Forward: complex A-scans a_scan[i·NZ + n], relative to 2^{scale_exponent[i]}.
+ * If slot_data is not null, T of each visited pair within reach is stored
+ * for the adjoint and the number of visited entries goes to stop_position.
  */
 __kernel void render_forward(const ScannerParams p,
                              SCENE_ARGUMENTS,
-                             __global complex_t *a_scan,
-                             __global complex_t *slot_data, __global int *stop_cursor) {
+                             __global complex_t *a_scan, __global const int *scale_exponent,
+                             __global complex_t *slot_data, __global int *stop_position) {
     const int i = get_global_id(0);
     if (i >= p.a_scans) return;
-    int begin[3], end[3], cursor[3];
-    candidate_bins(p, i, bin_start, begin, end);
-    for (int b = 0; b < 3; ++b) cursor[b] = begin[b];
+    const int list = i / p.ascans_per_bin + 1; /* bins are shifted by one */
+    const int begin = list_start[list], end = list_start[list + 1];
+    const int scale = scale_exponent[i];
+    __global complex_t *slot = slot_data + (size_t)(i % p.ascans_per_bin) * p.entries;
 
     complex_t grid[GRID];
     for (int l = 0; l < GRID; ++l) grid[l] = (complex_t)(0, 0);
 
-    real transmission = 1, transmission_lo = 0;
-    int m;
-    while (transmission > p.min_transmission && (m = next_deeper(cursor, end, rank)) >= 0) {
-        const real d2 = squared_distance(p, i, bin[m], x_offset_um[m], y_um[m]);
+    real2 transmission = (real2)(1, 0);
+    int j = begin;
+    for (; j < end && transmission.x > p.min_transmission; ++j) {
+        const Entry e = entry[j];
+        const real d2 = squared_distance(p, i, e);
         if (d2 >= p.shadow_d2) continue;
-        const real beam_amplitude = exp(-d2 * p.inv_w0_sq) * amplitude[m];
-        if (slot_data) slot_data[slot_index(p, i, m, bin[m])].x = transmission;
-        if (i >= contributes_to[m].x && i <= contributes_to[m].y) {
-            const complex_t c = (transmission * beam_amplitude) * carrier[m];
-            int first;
-            const taps_t w = spread_weights(grid_pos[m], p.es_beta, &first);
+        const real beam = beam_mantissa(p, d2, e.mantissa);
+        if (slot_data) slot[j].x = transmission.x;
+        if (contributes(e, i)) {
+            const complex_t c = (transmission.x * ldexp(beam, e.exponent - scale)) * e.carrier;
+            const taps_t w = spread_weights(e.tap_offset, p.es_beta);
             const real *wv = (const real *)&w;
-            for (int t = 0; t < SPREAD_WIDTH; ++t) grid[(first + t) & (GRID - 1)] += c * wv[t];
+            for (int t = 0; t < SPREAD_WIDTH; ++t) grid[(e.first_tap + t) & (GRID - 1)] += c * wv[t];
         }
-        attenuate(&transmission, &transmission_lo, fmin(beam_amplitude * beam_amplitude, (real)1));
+        transmission = dw_mul(transmission, one_minus(shadow_energy(beam, e.exponent)));
     }
-    if (stop_cursor)
-        for (int b = 0; b < 3; ++b) stop_cursor[3 * i + b] = cursor[b];
+    if (stop_position) stop_position[i] = j - begin;
 
     fft(grid, LOG2_GRID, -1, twiddle);
     /* X[q] = H[q]·grid[s_q mod GRID], s_q = q (q ≤ NZ/2) or q − NZ; in place:
@@ -243,18 +341,22 @@ __kernel void render_forward(const ScannerParams p,
 }
 
 /*
- * Adjoint: given a_scan_bar (Ā, same layout as a_scan), overwrite each visited
- * pair's slot with (∂L/∂u, ∂L/∂z) of that A-scan. Unvisited slots must hold 0.
+ * Adjoint: given a_scan_bar (Ā·2^{scale_exponent[i]}, the layout of a_scan),
+ * write every slot of the A-scan: (∂L/∂u, ∂L/∂z) of the pair for visited
+ * pairs within reach, 0 for the others.
  */
 __kernel void render_adjoint(const ScannerParams p,
                              SCENE_ARGUMENTS,
-                             __global const complex_t *a_scan_bar,
-                             __global complex_t *slot_data, __global const int *stop_cursor) {
+                             __global const complex_t *a_scan_bar, __global const int *scale_exponent,
+                             __global complex_t *slot_data, __global const int *stop_position) {
     const int i = get_global_id(0);
     if (i >= p.a_scans) return;
-    int begin[3], end[3], cursor[3];
-    candidate_bins(p, i, bin_start, begin, end);
-    for (int b = 0; b < 3; ++b) cursor[b] = stop_cursor[3 * i + b];
+    const int list = i / p.ascans_per_bin + 1;
+    const int begin = list_start[list], end = list_start[list + 1];
+    const int stop = begin + stop_position[i];
+    const int scale = scale_exponent[i];
+    __global complex_t *slot = slot_data + (size_t)(i % p.ascans_per_bin) * p.entries;
+    for (int j = stop; j < end; ++j) slot[j] = (complex_t)(0, 0);
 
     /* X̄ = FFT(Ā)·H, then the two grid adjoints b̄ = IFFT(X̄), b̄' = IFFT(s·X̄). */
     complex_t grid_bar[GRID], grid_bar_s[GRID];
@@ -275,49 +377,283 @@ __kernel void render_adjoint(const ScannerParams p,
     fft(grid_bar_s, LOG2_GRID, +1, twiddle);
 
     real downstream = 0; /* D: sensitivity to the transmission just below the visited scatterer */
-    int m;
-    while ((m = next_shallower(cursor, begin, rank)) >= 0) {
-        const real d2 = squared_distance(p, i, bin[m], x_offset_um[m], y_um[m]);
-        if (d2 >= p.shadow_d2) continue;
-        const real beam_amplitude = exp(-d2 * p.inv_w0_sq) * amplitude[m];
-        const real beam_energy = beam_amplitude * beam_amplitude;
-        __global complex_t *slot = slot_data + slot_index(p, i, m, bin[m]);
-        const real transmission = slot->x;
+    for (int j = stop - 1; j >= begin; --j) {
+        const Entry e = entry[j];
+        const real d2 = squared_distance(p, i, e);
+        if (d2 >= p.shadow_d2) { slot[j] = (complex_t)(0, 0); continue; }
+        const real beam = beam_mantissa(p, d2, e.mantissa);
+        const real energy = shadow_energy(beam, e.exponent);
+        const real transmission = slot[j].x;
         real grad_u = 0, grad_z = 0, grad_transmission = 0;
-        if (i >= contributes_to[m].x && i <= contributes_to[m].y) {
-            int first;
-            const taps_t w = spread_weights(grid_pos[m], p.es_beta, &first);
+        if (contributes(e, i)) {
+            const taps_t w = spread_weights(e.tap_offset, p.es_beta);
             const real *wv = (const real *)&w;
             complex_t c_bar = (complex_t)(0, 0), c_bar_s = (complex_t)(0, 0);
             for (int t = 0; t < SPREAD_WIDTH; ++t) {
-                const int l = (first + t) & (GRID - 1);
+                const int l = (e.first_tap + t) & (GRID - 1);
                 c_bar += wv[t] * grid_bar[l];
                 c_bar_s += wv[t] * grid_bar_s[l];
             }
-            const real v = transmission * beam_amplitude;
-            const real r = cconj_mul(c_bar, carrier[m]).x;  /* ∂L/∂v */
+            const real relative = ldexp(beam, e.exponent - scale);
+            const real v = transmission * relative;
+            const real r = cconj_mul(c_bar, e.carrier).x;  /* ∂L/∂v */
             grad_u = r * v / 2;
             /* Re(−2i·v·e^{iφ}·(k0·conj(c̄) + δk·conj(c̄'))) = 2v·Im(e^{iφ}·conj(k0·c̄ + δk·c̄')) */
-            grad_z = 2 * v * cconj_mul(p.k0 * c_bar + p.dk * c_bar_s, carrier[m]).y;
-            grad_transmission = r * beam_amplitude;
+            grad_z = 2 * v * cconj_mul(p.k0 * c_bar + p.dk * c_bar_s, e.carrier).y;
+            grad_transmission = r * relative;
         }
-        if (beam_energy < 1) grad_u -= transmission * downstream * beam_energy;
-        *slot = (complex_t)(grad_u, grad_z);
-        downstream = grad_transmission + (1 - fmin(beam_energy, (real)1)) * downstream;
+        if (energy < 1) grad_u -= transmission * downstream * energy;
+        slot[j] = (complex_t)(grad_u, grad_z);
+        downstream = grad_transmission + (1 - energy) * downstream;
     }
 }
 
-/* Sum each scatterer's slots: gradient[m] = (∂L/∂u_m, ∂L/∂z_m). */
+/* ============================================ one work-group per A-scan */
+
+/* In-place radix-2 FFT of length 1 << log2n of a local array, the work-group
+ * sharing each stage's butterflies (same transform as fft above). Call with
+ * every work-item of the group; returns after a barrier. */
+static void fft_local(__local complex_t *a, int log2n, int sign, __global const complex_t *twiddle) {
+    const int n = 1 << log2n, lid = get_local_id(0);
+    for (int i = lid; i < n; i += WG_SIZE) { /* bit reversal: disjoint swaps */
+        int reversed = 0;
+        for (int b = 0; b < log2n; ++b) reversed |= ((i >> b) & 1) << (log2n - 1 - b);
+        if (i < reversed) { const complex_t t = a[i]; a[i] = a[reversed]; a[reversed] = t; }
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int span = 1, stride = GRID >> 1; span < n; span <<= 1, stride >>= 1) {
+        for (int butterfly = lid; butterfly < n / 2; butterfly += WG_SIZE) {
+            const int k = butterfly & (span - 1);
+            const int top = (butterfly - k) * 2 + k;
+            complex_t w = twiddle[k * stride];
+            w.y *= sign < 0 ? 1 : -1;
+            const complex_t t = cmul(w, a[top + span]);
+            a[top + span] = a[top] - t;
+            a[top] += t;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+}
+
+/* First list entry in [lo, hi) whose first tap is ≥ value (taps ascend along
+ * a list, since entries are in depth order and p_m grows with z_m). */
+static inline int first_tap_at_least(__global const Entry *entry, int lo, int hi, int value) {
+    while (lo < hi) {
+        const int mid = lo + (hi - lo) / 2;
+        if (entry[mid].first_tap < value) lo = mid + 1; else hi = mid;
+    }
+    return lo;
+}
+
+/*
+ * Forward, one work-group per A-scan; the same outputs as render_forward
+ * (slot_data and stop_position are required: slot .y holds T·b̃ for the
+ * gather). Per tile of WG_SIZE consecutive list entries:
+ *   T_j = T_tile · Π_{tile entries k < j} (1 − t_k), an exclusive
+ *   work-group scan of double-word products (Hillis–Steele);
+ * then each grid point l gathers Σ ψ·T·b̃·e^{iφ} over the entries whose taps
+ * cover it (a range of the list, found by binary search on first_tap), in
+ * list order; then both FFTs run in local memory.
+ */
+__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+void render_forward_group(const ScannerParams p,
+                          SCENE_ARGUMENTS,
+                          __global complex_t *a_scan, __global const int *scale_exponent,
+                          __global complex_t *slot_data, __global int *stop_position) {
+    const int i = get_group_id(0), lid = get_local_id(0);
+    const int list = i / p.ascans_per_bin + 1;
+    const int begin = list_start[list], end = list_start[list + 1];
+    __global complex_t *slot = slot_data + (size_t)(i % p.ascans_per_bin) * p.entries;
+    __local real2 scan[WG_SIZE];
+    __local complex_t grid[GRID];
+    __local int visited;
+
+    if (lid == 0) visited = end - begin;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const int scale = scale_exponent[i];
+    real2 transmission = (real2)(1, 0); /* T before the tile, the same in every work-item */
+    for (int base = begin; base < end; base += WG_SIZE) {
+        const int j = base + lid;
+        Entry e;
+        real beam = 0, d2 = 0;
+        real2 factor = (real2)(1, 0);
+        if (j < end) {
+            e = entry[j];
+            d2 = squared_distance(p, i, e);
+            if (d2 < p.shadow_d2) {
+                beam = beam_mantissa(p, d2, e.mantissa);
+                factor = one_minus(shadow_energy(beam, e.exponent));
+            }
+        }
+        scan[lid] = factor;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        for (int offset = 1; offset < WG_SIZE; offset <<= 1) { /* inclusive product scan */
+            const real2 earlier = lid >= offset ? scan[lid - offset] : (real2)(1, 0);
+            barrier(CLK_LOCAL_MEM_FENCE);
+            scan[lid] = dw_mul(earlier, scan[lid]);
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+        const real2 before = dw_mul(transmission, lid ? scan[lid - 1] : (real2)(1, 0));
+        if (j < end) {
+            if (before.x <= p.min_transmission) {
+                atomic_min(&visited, j - begin);
+                slot[j] = (complex_t)(0, 0);
+            } else if (d2 < p.shadow_d2) {
+                slot[j] = (complex_t)(before.x, contributes(e, i) ? before.x * ldexp(beam, e.exponent - scale) : 0);
+            } else {
+                slot[j] = (complex_t)(0, 0);
+            }
+        }
+        transmission = dw_mul(transmission, scan[WG_SIZE - 1]);
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (transmission.x <= p.min_transmission) break; /* uniform: every work-item has the same T */
+    }
+    barrier(CLK_GLOBAL_MEM_FENCE | CLK_LOCAL_MEM_FENCE);
+    const int stop = begin + visited;
+    if (lid == 0) stop_position[i] = visited;
+
+    /* Gather: grid point l receives from the entries with first_tap ≡ l − k
+     * (mod GRID), k = 0 … W − 1; first_tap runs from −W/2 to GRID − W/2 + 1,
+     * so the wrapped ranges are those of l ± GRID. */
+    for (int l = lid; l < GRID; l += WG_SIZE) {
+        complex_t sum = (complex_t)(0, 0);
+        for (int wrap = -GRID; wrap <= GRID; wrap += GRID) {
+            const int lowest = l + wrap - SPREAD_WIDTH + 1;
+            for (int j = first_tap_at_least(entry, begin, stop, lowest); j < stop; ++j) {
+                const int first = entry[j].first_tap;
+                if (first > l + wrap) break;
+                const real v = slot[j].y;
+                if (v != 0) sum += (v * spread_weight(entry[j].tap_offset, l + wrap - first, p.es_beta)) * entry[j].carrier;
+            }
+        }
+        grid[l] = sum;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    fft_local(grid, LOG2_GRID, -1, twiddle);
+    /* X[q] = H[q]·grid[s_q mod GRID] in place: q ≤ NZ/2 reads its own index,
+     * q > NZ/2 reads q + NZ, which no work-item writes. */
+    for (int q = lid; q < NZ; q += WG_SIZE) grid[q] = transfer[q] * grid[q <= NZ / 2 ? q : q + NZ];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    fft_local(grid, LOG2_NZ, +1, twiddle);
+    for (int n = lid; n < NZ; n += WG_SIZE) a_scan[(size_t)i * NZ + n] = grid[n];
+}
+
+/*
+ * Adjoint, one work-group per A-scan; the same outputs as render_adjoint.
+ * The grid adjoints b̄, b̄' live in local memory; each entry's c̄, c̄' is an
+ * independent gather. The shadow sensitivity D runs over tiles from the
+ * deepest: within a tile, the maps F_k: D ↦ (1 − t_k)·D + R_k·b̃_k of the
+ * entries after j compose (an exclusive suffix scan of affine maps,
+ * (a, b)∘(a', b') = (a·a', a·b' + b)), and D before entry j is that
+ * composition applied to the D carried from the deeper tiles.
+ */
+__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+void render_adjoint_group(const ScannerParams p,
+                          SCENE_ARGUMENTS,
+                          __global const complex_t *a_scan_bar, __global const int *scale_exponent,
+                          __global complex_t *slot_data, __global const int *stop_position) {
+    const int i = get_group_id(0), lid = get_local_id(0);
+    const int list = i / p.ascans_per_bin + 1;
+    const int begin = list_start[list], end = list_start[list + 1];
+    const int stop = begin + stop_position[i];
+    const int scale = scale_exponent[i];
+    __global complex_t *slot = slot_data + (size_t)(i % p.ascans_per_bin) * p.entries;
+    __local complex_t grid_bar[GRID], grid_bar_s[GRID];
+    __local real2 scan[WG_SIZE];
+
+    for (int j = stop + lid; j < end; j += WG_SIZE) slot[j] = (complex_t)(0, 0);
+    for (int l = lid; l < GRID; l += WG_SIZE) {
+        grid_bar[l] = l < NZ ? a_scan_bar[(size_t)i * NZ + l] : (complex_t)(0, 0);
+        grid_bar_s[l] = (complex_t)(0, 0);
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    fft_local(grid_bar, LOG2_NZ, -1, twiddle);
+    /* X̄[q] = H[q]·FFT(Ā)[q] moves to grid index q (q ≤ NZ/2) or q + NZ, which
+     * only work-item q touches. */
+    for (int q = lid; q < NZ; q += WG_SIZE) {
+        const complex_t x_bar = transfer[q] * grid_bar[q];
+        const int s = q <= NZ / 2 ? q : q - NZ;
+        const int l = q <= NZ / 2 ? q : q + NZ;
+        if (l != q) grid_bar[q] = (complex_t)(0, 0);
+        grid_bar[l] = x_bar;
+        grid_bar_s[l] = (real)s * x_bar;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    fft_local(grid_bar, LOG2_GRID, +1, twiddle);
+    fft_local(grid_bar_s, LOG2_GRID, +1, twiddle);
+
+    real downstream = 0; /* D below the current tile, the same in every work-item */
+    for (int top = stop - WG_SIZE; top > begin - WG_SIZE; top -= WG_SIZE) {
+        const int j = top + lid;
+        const bool valid = j >= begin;
+        Entry e;
+        real d2 = p.shadow_d2, beam = 0, energy = 0, transmission = 0;
+        real grad_u = 0, grad_z = 0;
+        real2 map = (real2)(1, 0); /* F_j as (a, b), the identity when out of reach */
+        if (valid) {
+            e = entry[j];
+            d2 = squared_distance(p, i, e);
+        }
+        if (d2 < p.shadow_d2) {
+            beam = beam_mantissa(p, d2, e.mantissa);
+            energy = shadow_energy(beam, e.exponent);
+            transmission = slot[j].x;
+            real grad_transmission = 0;
+            if (contributes(e, i)) {
+                complex_t c_bar = (complex_t)(0, 0), c_bar_s = (complex_t)(0, 0);
+                for (int t = 0; t < SPREAD_WIDTH; ++t) {
+                    const real w = spread_weight(e.tap_offset, t, p.es_beta);
+                    const int l = (e.first_tap + t) & (GRID - 1);
+                    c_bar += w * grid_bar[l];
+                    c_bar_s += w * grid_bar_s[l];
+                }
+                const real relative = ldexp(beam, e.exponent - scale);
+                const real v = transmission * relative;
+                const real r = cconj_mul(c_bar, e.carrier).x;
+                grad_u = r * v / 2;
+                grad_z = 2 * v * cconj_mul(p.k0 * c_bar + p.dk * c_bar_s, e.carrier).y;
+                grad_transmission = r * relative;
+            }
+            map = (real2)(1 - energy, grad_transmission);
+        }
+        scan[lid] = map;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        for (int offset = 1; offset < WG_SIZE; offset <<= 1) { /* inclusive suffix scan */
+            const real2 deeper = lid + offset < WG_SIZE ? scan[lid + offset] : (real2)(1, 0);
+            barrier(CLK_LOCAL_MEM_FENCE);
+            const real2 own = scan[lid];
+            scan[lid] = (real2)(own.x * deeper.x, own.x * deeper.y + own.y);
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+        const real2 after = lid + 1 < WG_SIZE ? scan[lid + 1] : (real2)(1, 0);
+        if (d2 < p.shadow_d2) {
+            if (energy < 1) grad_u -= transmission * (after.x * downstream + after.y) * energy;
+            slot[j] = (complex_t)(grad_u, grad_z);
+        } else if (valid) {
+            slot[j] = (complex_t)(0, 0);
+        }
+        downstream = scan[0].x * downstream + scan[0].y;
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+}
+
+/* Sum each scatterer's slots: gradient[m] = (∂L/∂u_m, ∂L/∂z_m). Scatterer m
+ * has one entry in each of the lists bin_m − 1 … bin_m + 1 that exist
+ * (entry_index[3m + k], −1 for none), each serving P A-scans. */
 __kernel void reduce_slots(const ScannerParams p, __global const int *bin,
-                           __global const complex_t *slot_data, __global complex_t *gradient,
-                           const int count) {
+                           __global const int *entry_index, __global const complex_t *slot_data,
+                           __global complex_t *gradient, const int count) {
     const int m = get_global_id(0);
     if (m >= count) return;
-    const int first_ascan = p.ascans_per_bin * (bin[m] - 2);
     complex_t total = (complex_t)(0, 0);
-    for (int s = 0; s < p.slots; ++s) {
-        const int ascan = first_ascan + s;
-        if (ascan >= 0 && ascan < p.a_scans) total += slot_data[(size_t)m * p.slots + s];
+    for (int k = 0; k < 3; ++k) {
+        const int j = entry_index[3 * m + k];
+        if (j < 0) continue;
+        const int first_ascan = p.ascans_per_bin * (bin[m] - 2 + k);
+        for (int s = 0; s < p.ascans_per_bin; ++s) {
+            const int ascan = first_ascan + s;
+            if (ascan >= 0 && ascan < p.a_scans) total += slot_data[(size_t)s * p.entries + j];
+        }
     }
     gradient[m] = total;
 }

@@ -6,7 +6,7 @@ Public surface:
 - :class:`ScannerConfig` — the Virtual Scanner's Configuration.ini;
 - :func:`render` — phantom → B-scan (OpenCL kernels, or the float64 NumPy reference);
 - :func:`score` — the SynthOCT 2026 score of a predicted B-scan against a reference;
-- :func:`invert` — target B-scan → phantom whose rendering matches it.
+- :func:`invert` — target B-scan (PNG or array) → phantom whose rendering matches it.
 
 The ``octcl`` command wraps them (``octcl --help``).
 """
@@ -26,8 +26,8 @@ def score(ref, pred) -> dict:
     return _score(ref, pred)
 
 
-def invert(target_path, output_path, **options):
-    """Invert a target B-scan PNG into a phantom file (see :func:`octcl.host.invert.invert`)."""
+def invert(target, output_path, **options):
+    """Invert a target B-scan (PNG path or uint8 array) into a phantom file (:func:`octcl.host.invert.invert`)."""
     from .host.invert import invert as _invert
 
-    return _invert(target_path, output_path, **options)
+    return _invert(target, output_path, **options)

@@ -163,9 +163,14 @@ def _introsort_kernel(context):
 def introsort_argsort_opencl(keys, device=None) -> np.ndarray:
     """NumPy's classic argsort of int64 ``keys`` by ``kernels/depth_order.cl``.
 
-    One work-item on ``device`` (a pyopencl device, or a choice for
-    :func:`octcl._runtime.select_device`; default: the default device).
-    Returns int64 indices, shape (n,).
+    One work-item on ``device``, a CPU device (a pyopencl device, or a
+    choice for :func:`octcl._runtime.select_device`; default: the first CPU
+    device). Returns int64 indices, shape (n,).
+
+    Raises
+    ------
+    ValueError
+        ``device`` is not a CPU: a single work-item would stall a GPU.
     """
     import pyopencl as cl
 
@@ -178,7 +183,12 @@ def introsort_argsort_opencl(keys, device=None) -> np.ndarray:
     if count == 0:
         return np.zeros(0, dtype=np.int64)
     if device is None or isinstance(device, str):
-        device = select_device(device)
+        device = select_device(device or "cpu")
+    if not device.type & cl.device_type.CPU:
+        # One work-item on a GPU is one slow thread holding up the device:
+        # octcl._scanner_op.sort_device_for sends the sort to a CPU device.
+        raise ValueError(f"the depth order is a single work-item kernel and runs on CPU devices only, "
+                         f"not on {device.name.strip()}")
     context, queue = context_for(device)
     mf = cl.mem_flags
     key_buffer = cl.Buffer(context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=keys)

@@ -71,7 +71,7 @@ def _cmd_render(args) -> int:
         from ._scanner_op import KernelSettings
 
         settings = KernelSettings(spread_width=args.spread_width, shadow_radius_sq=args.shadow_radius_sq,
-                                  double=args.double)
+                                  double=args.double, variant=args.kernel_variant)
     with _display(args, f"render {Path(args.phantom).name}") as display:
         display.update(None, f"{len(phantom):,} scatterers, {args.backend}", force=True)
         rendering = render(phantom, config, backend=args.backend, device=args.device, settings=settings)
@@ -160,11 +160,16 @@ def _invert_lines(result: dict) -> list[str]:
     seconds = result["seconds"]
     stages = ", ".join(f"{name} {format_seconds(seconds[name])}"
                        for name in ("field", "decode", "setup", "refine") if name in seconds)
-    ending = "stopped by the time budget" if result["stopped_by_deadline"] else "schedule completed"
+    ending = "fixed schedule" if result["fixed_schedule"] else \
+        "deadline mode, stopped by the time budget" if result["stopped_by_deadline"] else \
+        "deadline mode, schedule completed"
+    threads = result["threads"] if result["threads"] is not None else "chosen by timing"
     return [f"{result['output']}: {result['scatterers']:,} scatterers, score {result['score']:.5f} "
             f"(initial_score after stages 1-2: {result['initial_score']:.5f})",
             *_format_table(result["components"]),
-            f"iterations: {result['iterations']} ({ending}); seed {result['seed']}",
+            f"iterations: {result['iterations']} ({ending}); field_iterations {result['field_iterations']}; "
+            f"seed {result['seed']}; threads {threads}",
+            f"reproduce (this schedule, no clock decisions): {result['reproduce']}",
             f"seconds: {format_seconds(seconds['total'])} ({stages}); "
             f"checkpoints {result['checkpoints']}, peak memory {result['peak_memory_mib']:.0f} MiB"]
 
@@ -212,21 +217,28 @@ def _cmd_invert(args) -> int:
         raise UsageError("--targets needs --out DIR")
     if args.target and not args.output:
         raise UsageError("invert needs -o PHANTOM.txt")
+    from .host.invert import TimeBudgetExceeded, invert
+
+    # The fixed schedule's options, for one scan or each scan of a batch (docs/reproducibility.md).
+    schedule = {name: getattr(args, name) for name in ("iterations", "field_iterations", "threads")
+                if getattr(args, name) is not None}
     if args.target:
         given = [f"--{name.replace('_', '-')}" for name in _BATCH_ONLY if getattr(args, name) not in (None, False)]
         if given:
             raise UsageError(f"{', '.join(given)}: only with --targets DIR --out DIR")
-        from .host.invert import invert
-
         with _display(args, "invert") as display:
-            result = invert(args.target, args.output, time_budget_s=args.time_budget, seed=args.seed,
-                            report_path=args.report, progress=_invert_progress(display), config=config).as_dict()
+            try:
+                result = invert(args.target, args.output, time_budget_s=args.time_budget, seed=args.seed,
+                                report_path=args.report, progress=_invert_progress(display), config=config,
+                                **schedule).as_dict()
+            except TimeBudgetExceeded as exc:  # a budget too small for the fixed schedule asked for
+                raise UsageError(str(exc)) from None
         payload = {**result, "report": str(args.report) if args.report else None}
         return _finish(args, payload, [*_invert_lines(result), *([f"report: {args.report}"] if args.report else [])])
 
     from .host.batch import invert_batch
 
-    options = {} if config is DEFAULT_CONFIG else {"config": config}
+    options = {**schedule, **({} if config is DEFAULT_CONFIG else {"config": config})}
     with _display(args, "invert") as display:
         summary = invert_batch(
             args.targets, args.out, time_budget_s=args.time_budget, seed=args.seed, workers=args.workers,
@@ -293,7 +305,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spread-width", type=int, default=8, help="kernel accuracy: spreading width W (2-16)")
     p.add_argument("--shadow-radius-sq", type=float, default=20.0,
                    help="kernel accuracy: shadowing reach R² in w0² (≥ 3; 20 is exact)")
-    p.add_argument("--double", action="store_true", help="float64 kernels (device must support fp64)")
+    p.add_argument("--double", action="store_true",
+                   help="float64 kernels (device must support fp64); float32 already renders every legal "
+                        "phantom, energies 1e-300 to 100 %%, as the float64 reference does")
+    p.add_argument("--kernel-variant", choices=("auto", "work-item", "work-group"), default="auto",
+                   help="one work-item or one work-group per A-scan (default: work-group on GPUs, "
+                        "work-item on CPUs)")
 
     p = command("maps", "write the official OAC, SC and RSC maps of a B-scan", _cmd_maps)
     p.add_argument("scan", help="B-scan PNG")
@@ -318,8 +335,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("invert", "invert a target B-scan into a phantom, or every scan of a folder tree", _cmd_invert)
     p.add_argument("target", nargs="?", help="target B-scan PNG (256×512)")
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
-    p.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan (default 600)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--time-budget", type=float, default=600.0,
+                   help="seconds per scan (default 600); with --iterations only a ceiling that fails the run")
+    p.add_argument("--seed", type=int, default=0, help="seed of the decoder's random elevations (default 0)")
+    p.add_argument("--iterations", type=int, metavar="N",
+                   help="fixed schedule: N Adam iterations of stage 3 and --field-iterations of stage 1, "
+                        "no decision from the clock, at --threads threads: the same target, seed, N, "
+                        "version and device give the same file, byte for byte. Without it the time budget "
+                        "decides how far each stage gets (the summary says how to repeat that schedule)")
+    p.add_argument("--field-iterations", type=int, metavar="M",
+                   help="stage 1 iterations (default 1500; at most, within its time share, without --iterations)")
+    p.add_argument("--threads", type=int, metavar="T",
+                   help="torch CPU threads for the whole run (default with --iterations: 1; without: chosen "
+                        "by timing)")
     p.add_argument("--report", help="JSON report: score trace against time, per stage")
     p.add_argument("--config", help="Configuration.ini")
     batch = p.add_argument_group(

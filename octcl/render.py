@@ -12,6 +12,8 @@ pulled back to the A-scans and, by the kernels' adjoint, to every scatterer.
 
 from __future__ import annotations
 
+import functools
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,10 +111,30 @@ def render(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG, backend: st
                          display=reference.display, levels=reference.levels)
     if backend != "opencl":
         raise ValueError(f"unknown backend {backend!r}; use 'opencl' or 'numpy'")
-    from ._scanner_op import KernelSettings, ScannerKernels
+    from ._runtime import select_device
+    from ._scanner_op import KernelSettings
 
-    kernels = ScannerKernels(config, settings or KernelSettings(), device)
+    if device is None or isinstance(device, str):
+        device = select_device(device)
+    kernels, lock = _scanner_kernels(config, settings or KernelSettings(), device)
     with np.errstate(divide="ignore"):
         log_energy = np.log(phantom.energy_pct)
-    kernels.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
-    return Rendering.from_a_scans(kernels.forward())
+    with lock:
+        kernels.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
+        a_scans = kernels.forward()
+    return Rendering.from_a_scans(a_scans)
+
+
+@functools.lru_cache(maxsize=8)
+def _scanner_kernels(config: ScannerConfig, settings, device):
+    """The OpenCL scanner for a configuration, kernel settings and device, made once per process.
+
+    Making one builds the programs (or takes them from PyOpenCL's binary
+    cache) in the device's context and uploads the spreading tables; kept,
+    it makes every later :func:`render` only lay out the phantom and run
+    the forward kernel. The lock serialises renders that share it (its
+    phantom layout is state).
+    """
+    from ._scanner_op import ScannerKernels
+
+    return ScannerKernels(config, settings, device), threading.Lock()

@@ -131,15 +131,25 @@ def score_maps(ref_maps: dict, pred_maps: dict) -> dict:
     )
 
 
+def _maps_for_metrics(struct: np.ndarray, scan: np.ndarray) -> dict:
+    """The four maps of a scan, each as the official metric reads it.
+
+    ``struct`` is the scan PNG as the metric reads it (:func:`_read_map_for_metrics`),
+    ``scan`` as the processor reads it (:func:`octcl._io.read_scan`); the OAC,
+    SC and RSC maps are the processor's of ``scan``, saved and read back.
+    """
+    from .maps import map_levels
+
+    derived = map_levels(scan)
+    return {"Struct": struct, **{name: _levels_for_metrics(derived[name]) for name in ("OAC", "SC", "RSC")}}
+
+
 def _scan_maps_for_metrics(path) -> dict:
     """The four maps of a scan PNG, each as the official metric reads it."""
     from ._io import read_scan
-    from .maps import map_levels
 
-    derived = map_levels(read_scan(path, shape=SCAN_SHAPE))
-    maps = {"Struct": _read_map_for_metrics(path)}
-    maps.update({name: _levels_for_metrics(derived[name]) for name in ("OAC", "SC", "RSC")})
-    return maps
+    scan = read_scan(path, shape=SCAN_SHAPE)  # first: its checks name the file and the problem
+    return _maps_for_metrics(_read_map_for_metrics(path), scan)
 
 
 def score(ref, pred) -> dict:

@@ -2,9 +2,11 @@
 
 N synthetic targets (``octcl phantom skin`` seeds 0…N−1, rendered, saved as
 ``.npy`` as the challenge ships real scans) are inverted with the same
-per-scan settings (time budget, seed, and the first ``--iterations`` Adam
-steps of the default schedule, so that every scan ends on its schedule and
-not on the clock, whatever the load) by each mode:
+per-scan settings by each mode: the seed and a fixed schedule
+(``--iterations`` stage-3 and ``--field-iterations`` stage-1 Adam steps,
+:func:`octcl.host.invert.invert`'s ``iterations``), so that every scan ends
+on its schedule and not on the clock, whatever the load, and runs at the
+mode's thread count per scan (all cores for ``sequential``, T otherwise):
 
 - ``sequential``: one process inverting the scans one after the other with
   :func:`octcl.host.invert.invert` (what ``octcl invert --targets`` did
@@ -24,16 +26,15 @@ sequential), and the global score (mean of the 8 per-component medians).
 Results go to ``--out``: ``bench_batch.json``, ``bench_batch.csv`` and
 ``bench_batch.png`` (scans per hour and CPU use per mode).
 
-Example (about 15 minutes on two idle cores)::
+Example (about 20 minutes on two idle cores)::
 
-    python scripts/bench_batch.py --scans 4 --iterations 40 --out bench_batch
+    python scripts/bench_batch.py --scans 4 --iterations 20 --field-iterations 600 --out bench_batch
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import io
 import json
 import os
@@ -49,21 +50,10 @@ from octcl._io import atomic_write
 from octcl.host.batch import invert_batch
 from octcl.host.batch.report import summarise
 from octcl.host.field import _available_cores
-from octcl.host.refine import RefineSchedule
 from octcl.phantom import Phantom
 from octcl.render import render
 
 DASK = str(Path(sys.executable).with_name("dask"))
-
-
-def first_iterations(iterations: int) -> RefineSchedule:
-    """The default schedule's first ``iterations`` Adam steps (main phases only, no restarts)."""
-    default, phases, left = RefineSchedule(), [], iterations
-    for phase in default.phases:
-        if left:
-            phases.append(dataclasses.replace(phase, iterations=min(phase.iterations, left)))
-            left -= phases[-1].iterations
-    return dataclasses.replace(default, phases=tuple(phases), restarts=())
 
 
 def make_targets(folder: Path, count: int) -> None:
@@ -74,27 +64,26 @@ def make_targets(folder: Path, count: int) -> None:
             np.save(path, render(Phantom.skin(seed)).levels)
 
 
-def sequential_child(targets: Path, out: Path, budget: float, seed: int, iterations: int) -> None:
+def sequential_child(targets: Path, out: Path, budget: float, seed: int, schedule: dict) -> None:
     """The sequential path: :func:`invert` on each target in turn in this process; rows as JSON on stdout."""
     from octcl.host.invert import invert
 
     rows = {}
     for path in sorted(targets.glob("*.npy")):
         cpu = time.process_time()
-        result = invert(np.load(path), out / f"{path.stem}.txt", budget, seed,
-                        schedule=first_iterations(iterations))
+        result = invert(np.load(path), out / f"{path.stem}.txt", budget, seed, name=path.name, **schedule)
         rows[path.name] = {"scan": path.name, "status": "inverted", **result.components,
                            "seconds": result.seconds["total"], "peak_memory_mib": result.peak_memory_mib,
                            "cpu_s": time.process_time() - cpu, "worker": "sequential", "error": None}
     print(json.dumps(rows))
 
 
-def run_sequential(targets: Path, out: Path, budget: float, seed: int, iterations: int) -> dict:
+def run_sequential(targets: Path, out: Path, budget: float, seed: int, schedule: dict) -> dict:
     """:func:`sequential_child` in a process of its own, so that its peak memory is its own."""
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     done = subprocess.run([sys.executable, __file__, "--sequential-child", str(targets), str(out), str(budget),
-                           str(seed), str(iterations)], check=True, capture_output=True, text=True)
+                           str(seed), json.dumps(schedule)], check=True, capture_output=True, text=True)
     return {"rows": json.loads(done.stdout.splitlines()[-1]), "wall_s": time.monotonic() - started}
 
 
@@ -103,23 +92,28 @@ def start_stock_cluster(folder: Path, workers: int, threads: int):
     from distributed import Client
 
     file = folder / "scheduler.json"
-    processes = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+    # --dashboard-address: without it the scheduler's and workers' HTTP servers listen on every interface,
+    # also with --no-dashboard.
+    processes = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                   "--dashboard-address", "127.0.0.1:0",
                                    "--scheduler-file", str(file)], stderr=subprocess.DEVNULL)]
     while not (file.exists() and file.read_text()):
         time.sleep(0.2)
     for index in range(workers):
         processes.append(subprocess.Popen(
             [DASK, "worker", "--scheduler-file", str(file), "--nthreads", str(threads), "--host", "127.0.0.1",
-             "--no-dashboard", "--local-directory", str(folder / f"w{index}")], stderr=subprocess.DEVNULL))
+             "--dashboard-address", "127.0.0.1:0", "--local-directory", str(folder / f"w{index}")],
+            stderr=subprocess.DEVNULL))
     address = json.loads(file.read_text())["address"]
     with Client(address) as client:
         client.wait_for_workers(workers, timeout=180)
     return address, processes
 
 
-def run_mode(mode: str, targets: Path, out: Path, budget: float, seed: int, iterations: int) -> dict:
+def run_mode(mode: str, targets: Path, out: Path, budget: float, seed: int, schedule: dict, cores: int) -> dict:
+    """One mode's batch: its rows (as ``summary["scans"]``) and wall time; ``schedule`` without ``threads``."""
     if mode == "sequential":
-        return run_sequential(targets, out, budget, seed, iterations)
+        return run_sequential(targets, out, budget, seed, {**schedule, "threads": cores})
     kind, shape = mode.split(":")
     workers, threads = map(int, shape.split("x"))
     processes, options = [], {"workers": workers, "threads_per_worker": threads}
@@ -128,8 +122,7 @@ def run_mode(mode: str, targets: Path, out: Path, budget: float, seed: int, iter
         options = {"scheduler": address}
     try:
         started = time.monotonic()
-        summary = invert_batch(targets, out, budget, seed, force=True, schedule=first_iterations(iterations),
-                               **options)
+        summary = invert_batch(targets, out, budget, seed, force=True, threads=threads, **schedule, **options)
         wall = time.monotonic() - started
     finally:
         for process in reversed(processes):
@@ -178,12 +171,14 @@ def plot(path: Path, results: list[dict], title: str) -> None:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--sequential-child"]:
-        targets, out, budget, seed, iterations = argv[1:]
-        sequential_child(Path(targets), Path(out), float(budget), int(seed), int(iterations))
+        targets, out, budget, seed, schedule = argv[1:]
+        sequential_child(Path(targets), Path(out), float(budget), int(seed), json.loads(schedule))
         return 0
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scans", type=int, default=4, help="synthetic targets (default 4)")
-    parser.add_argument("--iterations", type=int, default=40, help="stage-3 Adam steps per scan (default 40)")
+    parser.add_argument("--iterations", type=int, default=20, help="stage-3 Adam steps per scan (default 20)")
+    parser.add_argument("--field-iterations", type=int, default=600,
+                        help="stage-1 Adam steps per scan (default 600)")
     parser.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan, a ceiling (default 600)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--modes", nargs="+", default=["sequential", "local:1x2", "local:2x1", "cluster:2x1"],
@@ -197,8 +192,9 @@ def main(argv=None) -> int:
     results = []
     for mode in args.modes:
         load = os.getloadavg()[0]
+        schedule = {"iterations": args.iterations, "field_iterations": args.field_iterations}
         result = measure(mode, run_mode(mode, targets, args.out / mode.replace(":", "_"), args.time_budget,
-                                        args.seed, args.iterations), cores)
+                                        args.seed, schedule, cores), cores)
         result["load_average_before"] = load
         results.append(result)
         print(f"{mode}: {result['scans_per_hour']:.1f} scans/h ({result['wall_s']:.0f} s), CPU "
@@ -208,7 +204,8 @@ def main(argv=None) -> int:
     for result in results:
         result["score_difference"] = result["score"] - baseline
     meta = {"command": " ".join(["python", "scripts/bench_batch.py", *argv]), "cores": cores,
-            "scans": args.scans, "iterations": args.iterations, "time_budget_s": args.time_budget, "seed": args.seed}
+            "scans": args.scans, "iterations": args.iterations, "field_iterations": args.field_iterations,
+            "time_budget_s": args.time_budget, "seed": args.seed}
     with atomic_write(args.out / "bench_batch.json", "w") as handle:
         json.dump({**meta, "results": results}, handle, indent=1)
     columns = ["mode", "scans", "wall_s", "scans_per_hour", "cpu_use_pct", "peak_memory_mib_per_worker",
@@ -221,7 +218,7 @@ def main(argv=None) -> int:
     with atomic_write(args.out / "bench_batch.csv", "w") as handle:
         handle.write(buffer.getvalue())
     plot(args.out / "bench_batch.png", results,
-         f"{args.scans} scans, {args.iterations} iterations, {cores} cores")
+         f"{args.scans} scans, {args.field_iterations} + {args.iterations} iterations, {cores} cores")
     return 0
 
 

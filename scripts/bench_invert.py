@@ -1,26 +1,41 @@
-"""Benchmark ``octcl.host.invert`` on a development set of B-scans.
+"""Benchmark ``octcl.host.invert`` on a development set of B-scans, over several seeds.
 
-The set: the official scans in ``../shared/data/official`` (Uniform A and B,
-Layers A), the real scan ``../shared/data/real/orange.png`` and, with
-``--skin N``, N skin-like synthetic targets rendered from
-:meth:`octcl.phantom.Phantom.skin`. Each scan is inverted in its own
-process (so the peak memory is that scan's) with the given time budget.
+The set: the official scans in the repository's ``data/official`` (Uniform A
+and B, Layers A), the real scan ``../shared/data/real/orange.png`` beside the
+repository and, with ``--skin N``, N skin-like synthetic targets rendered from
+:meth:`octcl.phantom.Phantom.skin`. The real scan may not be redistributed, so
+the repository does not carry it (``data/README.md``); without it the set goes
+on without ``orange``, and says so. Each scan is inverted once per seed
+(``--seeds``, three by default), each run in its own process (so the peak
+memory is that run's), with the given time budget or, with
+``--iterations``, a fixed schedule (no decision from the clock, so the
+scores do not depend on the machine's load; ``docs/reproducibility.md``).
 The written phantom is then rendered again with the OpenCL scanner and
 scored exactly against the target, which is the score the file would get.
 
+Two versions of the inversion differ significantly on a scan when their
+mean scores over n seeds each differ by more than
+t_{0.975, 2n−2}·s·sqrt(2/n), s the seeds' standard deviation (Student's
+two-sample t-test at 5 %, equal spreads); ``min_significant_difference``
+is that bound, per scan and for the global score.
+
 Writes, in ``--out``:
 
-- ``NAME.txt``, ``NAME.report.json`` (invert's report), ``NAME_render.png``;
-- ``NAME_panel.png``: target (top) and rendering (bottom), each as scan,
-  OAC, SC and RSC maps;
-- ``bench.csv`` and ``bench.json``: per scan the 8 components, their mean,
-  seconds, peak memory; then the medians and the global score (mean of the
-  8 medians);
+- ``NAME_sSEED.txt``, ``NAME_sSEED.report.json`` (invert's report),
+  ``NAME_sSEED_render.png``;
+- ``NAME_panel.png``: target (top) and rendering of the first seed (bottom),
+  each as scan, OAC, SC and RSC maps;
+- ``bench.csv``: per run the 8 components, their mean, seconds, peak memory
+  and the machine's 5-minute load average at its end;
+- ``spread.csv``: per scan, and for the global score (the mean of the 8
+  per-component medians over the scans, one per seed), the seeds' mean,
+  standard deviation, minimum, maximum and ``min_significant_difference``;
+- ``bench.json``: all of it;
 - ``score_vs_time.png``: exact score against wall time, from the traces.
 
 Example::
 
-    python scripts/bench_invert.py --time-budget 600 --scans Scan_Exp2_Layers_A orange
+    python scripts/bench_invert.py --time-budget 600 --scans Scan_Exp2_Layers_A orange --seeds 0 1 2
 """
 
 from __future__ import annotations
@@ -29,6 +44,7 @@ import argparse
 import csv
 import io
 import json
+import os
 import subprocess
 import sys
 import time
@@ -36,21 +52,26 @@ from pathlib import Path
 
 import numpy as np
 
-from octcl._io import atomic_write, read_png_rgb, write_grey_png
+from octcl._io import atomic_write, write_grey_png
 from octcl.host.batch.report import comparison_panel, score_plot
 from octcl.host.loss import ExactScore
+from octcl.host.target import read_target
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.render import render
 from octcl.scorer import COMPONENTS
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+REPOSITORY = Path(__file__).resolve().parents[1]
+OFFICIAL_DIR = REPOSITORY / "data" / "official"
 OFFICIAL = ("Scan_Exp1_Uniform_A", "Scan_Exp1_Uniform_B", "Scan_Exp2_Layers_A")
+ORANGE = REPOSITORY.parent / "shared" / "data" / "real" / "orange.png"
+ORANGE_MISSING = f"orange: {ORANGE} not found (a real scan the repository may not carry; see data/README.md)"
 
 
 def development_set(out: Path, skin: int) -> dict[str, Path]:
-    """{name: target PNG}; skin targets are rendered into ``out/targets``."""
-    targets = {name: DATA / "official" / f"{name}.png" for name in OFFICIAL}
-    targets["orange"] = DATA / "real" / "orange.png"
+    """{name: target PNG}; skin targets are rendered into ``out/targets``; orange only if present."""
+    targets = {name: OFFICIAL_DIR / f"{name}.png" for name in OFFICIAL}
+    if ORANGE.is_file():
+        targets["orange"] = ORANGE
     for seed in range(skin):
         path = out / "targets" / f"skin_{seed}.png"
         if not path.exists():
@@ -59,72 +80,108 @@ def development_set(out: Path, skin: int) -> dict[str, Path]:
     return targets
 
 
-def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int) -> None:
-    """invert() in a child process, so that ru_maxrss is this scan's peak."""
+def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None) -> None:
+    """invert() in a child process, so that ru_maxrss is this run's peak."""
     code = ("import sys; from octcl.host.invert import invert; "
             "invert(sys.argv[1], sys.argv[2], time_budget_s=float(sys.argv[4]), seed=int(sys.argv[5]), "
-            "report_path=sys.argv[3])")
-    subprocess.run([sys.executable, "-c", code, str(target), str(output), str(report), str(budget), str(seed)],
-                   check=True)
+            "report_path=sys.argv[3], iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]))")
+    subprocess.run([sys.executable, "-c", code, str(target), str(output), str(report), str(budget), str(seed),
+                    str(iterations)], check=True)
+
+
+def spread(scores: list[float]) -> dict:
+    """Mean, sample standard deviation, range and the least significant difference of n seeds' scores."""
+    from scipy.stats import t
+
+    n = len(scores)
+    std = float(np.std(scores, ddof=1)) if n > 1 else float("nan")
+    bound = float(t.ppf(0.975, 2 * n - 2) * std * np.sqrt(2 / n)) if n > 1 else float("nan")
+    return {"n": n, "mean": float(np.mean(scores)), "std": std, "min": float(min(scores)),
+            "max": float(max(scores)), "min_significant_difference": bound}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan (default 600)")
+    parser.add_argument("--time-budget", type=float, default=600.0,
+                        help="seconds per run (default 600; with --iterations only a ceiling)")
+    parser.add_argument("--iterations", type=int, help="fixed schedule: stage-3 Adam steps (invert's iterations)")
     parser.add_argument("--out", type=Path, default=Path("bench_invert"), help="output folder")
     parser.add_argument("--scans", nargs="*", help="names to run (default: all of the set)")
     parser.add_argument("--skin", type=int, default=2, help="synthetic skin targets to add (default 2)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds per scan (default 0 1 2)")
     args = parser.parse_args(argv)
 
     targets = development_set(args.out, args.skin)
     names = args.scans or list(targets)
+    if "orange" not in targets:
+        if not args.scans:
+            print(f"{ORANGE_MISSING}: the set goes on without it", file=sys.stderr)
+        elif "orange" in args.scans:
+            parser.error(ORANGE_MISSING)
     unknown = sorted(set(names) - set(targets))
     if unknown:
         parser.error(f"unknown scans {unknown}; known: {sorted(targets)}")
     rows, reports = {}, {}
     for name in names:
         target = targets[name]
-        output, report_path = args.out / f"{name}.txt", args.out / f"{name}.report.json"
-        start = time.monotonic()
-        run_invert(target, output, report_path, args.time_budget, args.seed)
-        wall = time.monotonic() - start
-        report = reports[name] = json.loads(report_path.read_text())
-        levels = render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels
-        write_grey_png(args.out / f"{name}_render.png", levels)
-        components = ExactScore(target)(levels)
-        with atomic_write(args.out / f"{name}_panel.png") as handle:
-            handle.write(comparison_panel(read_png_rgb(target)[..., 0], levels,
-                                          f"{name}: score {components['mean']:.5f} after "
-                                          f"{report['seconds']['total']:.0f} s"))
-        rows[name] = {**{c: components[c] for c in COMPONENTS}, "mean": components["mean"],
-                      "initial_score": report["initial_score"], "iterations": report["iterations"],
-                      "seconds": report["seconds"]["total"], "wall_s": wall,
-                      "peak_memory_mib": report["peak_memory_mib"]}
-        print(f"{name}: {components['mean']:.5f} (stages 1-2: {report['initial_score']:.5f}), "
-              f"{report['iterations']} iterations, {report['seconds']['total']:.0f} s, "
-              f"{report['peak_memory_mib']:.0f} MiB", flush=True)
+        target_array = read_target(target)
+        exact_score = ExactScore(target_array)
+        for seed in args.seeds:
+            run = f"{name}_s{seed}"
+            output, report_path = args.out / f"{run}.txt", args.out / f"{run}.report.json"
+            start = time.monotonic()
+            run_invert(target, output, report_path, args.time_budget, seed, args.iterations)
+            wall = time.monotonic() - start
+            report = reports[run] = json.loads(report_path.read_text())
+            levels = render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels
+            write_grey_png(args.out / f"{run}_render.png", levels)
+            components = exact_score(levels)
+            if seed == args.seeds[0]:
+                with atomic_write(args.out / f"{name}_panel.png") as handle:
+                    handle.write(comparison_panel(target_array, levels,
+                                                  f"{name}, seed {seed}: score {components['mean']:.5f} after "
+                                                  f"{report['seconds']['total']:.0f} s"))
+            rows[run] = {"scan": name, "seed": seed, **{c: components[c] for c in COMPONENTS},
+                         "mean": components["mean"], "initial_score": report["initial_score"],
+                         "iterations": report["iterations"], "field_iterations": report["field_iterations"],
+                         "seconds": report["seconds"]["total"], "wall_s": wall,
+                         "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
+            print(f"{run}: {components['mean']:.6f} (stages 1-2: {report['initial_score']:.6f}), "
+                  f"{report['iterations']} iterations, {report['seconds']['total']:.0f} s, "
+                  f"{report['peak_memory_mib']:.0f} MiB", flush=True)
 
-    medians = {c: float(np.median([row[c] for row in rows.values()])) for c in COMPONENTS}
-    summary = {"time_budget_s": args.time_budget, "seed": args.seed, "scans": rows, "medians": medians,
-               "score": float(np.mean(list(medians.values()))),
-               "median_seconds": float(np.median([row["seconds"] for row in rows.values()]))}
+    def global_score(seed):  # mean of the 8 per-component medians over the scans, for one seed
+        runs = [row for row in rows.values() if row["seed"] == seed]
+        return float(np.mean([np.median([row[c] for row in runs]) for c in COMPONENTS]))
+
+    spreads = {name: spread([row["mean"] for row in rows.values() if row["scan"] == name]) for name in names}
+    spreads["global"] = spread([global_score(seed) for seed in args.seeds])
+    summary = {"time_budget_s": args.time_budget, "iterations": args.iterations, "seeds": args.seeds,
+               "runs": rows, "spread": spreads}
     with atomic_write(args.out / "bench.json", "w") as handle:
         json.dump(summary, handle, indent=1)
-    columns = [*COMPONENTS, "mean", "initial_score", "iterations", "seconds", "wall_s", "peak_memory_mib"]
+    columns = ["scan", "seed", *COMPONENTS, "mean", "initial_score", "iterations", "field_iterations", "seconds",
+               "wall_s", "peak_memory_mib", "load_average"]
+    write_csv(args.out / "bench.csv", columns, rows.values())
+    write_csv(args.out / "spread.csv", ["scan", "n", "mean", "std", "min", "max", "min_significant_difference"],
+              [{"scan": name, **values} for name, values in spreads.items()])
+    with atomic_write(args.out / "score_vs_time.png") as handle:
+        handle.write(score_plot({run: report["trace"] for run, report in reports.items()},
+                                "best exact score against time", size=(9, 5.6)))
+    for name, values in spreads.items():
+        print(f"{name}: {values['mean']:.6f} ± {values['std']:.1e} (min {values['min']:.6f}, max {values['max']:.6f}, "
+              f"n {values['n']}); significant difference > {values['min_significant_difference']:.1e}")
+    return 0
+
+
+def write_csv(path: Path, columns: list[str], rows) -> None:
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["scan", *columns])
-    for name, row in rows.items():
-        writer.writerow([name, *(row[c] for c in columns)])
-    writer.writerow(["median", *(medians[c] for c in COMPONENTS), summary["score"], "", "", summary["median_seconds"]])
-    with atomic_write(args.out / "bench.csv", "w") as handle:
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow([row[c] for c in columns])
+    with atomic_write(path, "w") as handle:
         handle.write(buffer.getvalue())
-    with atomic_write(args.out / "score_vs_time.png") as handle:
-        handle.write(score_plot({name: report["trace"] for name, report in reports.items()},
-                                "best exact score against time", size=(9, 5.6)))
-    print(f"global score {summary['score']:.5f} over {len(rows)} scans; median {summary['median_seconds']:.0f} s")
-    return 0
 
 
 if __name__ == "__main__":

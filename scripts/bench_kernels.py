@@ -26,6 +26,7 @@ Writes ``--out``/kernels.csv and kernels.png (error against time).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import csv
 import json
 import subprocess
@@ -135,6 +136,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="two scenes, fewer settings")
     parser.add_argument("--device", help="OpenCL device (see `octcl devices`)")
+    parser.add_argument("--variant", default="auto", choices=("auto", "work-item", "work-group"),
+                        help="kernel variant (kernels/scanner.cl); auto follows the device type")
     parser.add_argument("--memory", action="store_true",
                         help="only the peak-memory probe: a fresh process per scene")
     args = parser.parse_args()
@@ -155,12 +158,14 @@ def main() -> None:
         reference_s = time.perf_counter() - start
         rng = np.random.default_rng(1)
         target, weight = reference.display, rng.uniform(0, 1, reference.display.shape)
-        best = ScannerKernels(settings=KernelSettings(spread_width=12, double=True), device=args.device)
+        best = ScannerKernels(settings=KernelSettings(spread_width=12, double=True, variant=args.variant),
+                              device=args.device)
         best.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
         target = np.clip(target + 0.05 * rng.standard_normal(target.shape), 0, 1)
         grad_u_star, grad_z_star = gradient(best, target, weight)
         print(f"{name}: reference {reference_s:.1f} s", flush=True)
         for settings in sweep(args.quick):
+            settings = dataclasses.replace(settings, variant=args.variant)
             kernels = ScannerKernels(settings=settings, device=args.device)
 
             def render_once():
@@ -176,7 +181,7 @@ def main() -> None:
             row = {
                 "scene": name, "spread_width": settings.spread_width,
                 "shadow_radius_sq": settings.shadow_radius_sq, "min_transmission": settings.min_transmission,
-                "precision": "float64" if settings.double else "float32",
+                "precision": "float64" if settings.double else "float32", "variant": kernels.variant,
                 "identical_pct": 100 * float(np.mean(rendering.levels == reference.levels)),
                 "max_index_error": int(index_error.max()),
                 "msssim": msssim_exact(reference.levels, rendering.levels),

@@ -5,9 +5,10 @@ Usage::
 
     python scripts/check_reference.py [--data DIR] [--depth-order {numpy-introsort,stable}]
 
-DIR defaults to ``../shared/data`` beside the repository (the folder holding
-``official/``). Prints, per scan, the share of identical pixels, the histogram
-of level differences (ours − official) and the rendering time.
+DIR is the folder holding ``official/``; it defaults to the repository's
+``data/`` (see ``data/README.md``). Prints, per scan, the share of identical
+pixels, the histogram of level differences (ours − official) and the
+rendering time.
 
 The reference orders depths as the scanner's NumPy classic ``np.argsort``
 (``numpy-introsort``, :mod:`octcl._depth_order`); ``--depth-order stable``
@@ -41,7 +42,7 @@ SCANS = [
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path,
-                        default=Path(__file__).resolve().parents[1].parent / "shared" / "data")
+                        default=Path(__file__).resolve().parents[1] / "data")
     parser.add_argument("--depth-order", choices=("numpy-introsort", "stable"), default="numpy-introsort")
     args = parser.parse_args(argv)
     official_dir = args.data / "official"

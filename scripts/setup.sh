@@ -13,8 +13,12 @@ fi
 pip() { "$VENV/bin/python" -m pip --disable-pip-version-check -q "$@"; }
 
 if ! "$VENV/bin/python" -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '2.13.0')" 2>/dev/null; then
-    # torch 2.13.0, CPU build only: a local wheel if the machine has one, else PyTorch's CPU index.
-    wheel=$(ls "${PIP_FIND_LINKS:-/opt/wheels}"/torch-2.13.0+cpu-*.whl 2>/dev/null | head -n 1 || true)
+    # torch 2.13.0, CPU build only: a wheel from the folder $PIP_FIND_LINKS names if it holds
+    # one (for machines without access to PyTorch's index), else PyTorch's CPU index.
+    wheel=
+    if [ -n "${PIP_FIND_LINKS:-}" ]; then
+        wheel=$(ls "$PIP_FIND_LINKS"/torch-2.13.0+cpu-*.whl 2>/dev/null | head -n 1 || true)
+    fi
     if [ -n "$wheel" ]; then
         pip install "$wheel"
     else

@@ -6,9 +6,12 @@ import pytest
 
 
 @pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """The reference data folder, /work/shared/data (see its README.md)."""
-    path = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+def official_data() -> Path:
+    """The official SynthOCT scans, maps and metrics in the repository's ``data/official/``.
+
+    See ``data/README.md`` for their provenance and licence.
+    """
+    path = Path(__file__).resolve().parents[1] / "data" / "official"
     assert path.is_dir(), f"reference data folder missing: {path}"
     return path
 
@@ -25,11 +28,11 @@ def lpips_weights() -> Path:
 
 
 @pytest.fixture(scope="session")
-def official_uniform_metrics(shared_data) -> dict:
+def official_uniform_metrics(official_data) -> dict:
     """Official MS-SSIM and LPIPS of Uniform_A against Uniform_B: {map: {metric: value}}."""
     import csv
 
-    with open(shared_data / "official" / "metrics_exp1_uniform.csv", newline="") as handle:
+    with open(official_data / "metrics_exp1_uniform.csv", newline="") as handle:
         return {
             row["Map_Type"]: {"MS-SSIM": float(row["MS-SSIM"]), "LPIPS": float(row["LPIPS"])}
             for row in csv.DictReader(handle)
@@ -37,14 +40,14 @@ def official_uniform_metrics(shared_data) -> dict:
 
 
 @pytest.fixture(scope="session")
-def official_uniform_maps(shared_data) -> tuple[dict, dict]:
+def official_uniform_maps(official_data) -> tuple[dict, dict]:
     """The official Struct/OAC/SC/RSC map PNGs of Uniform_A and Uniform_B as the metric reads them."""
     from octcl.scorer import _read_map_for_metrics
 
     def maps(scan):
         suffixes = {"Struct": "", "OAC": "_OAC", "SC": "_SC", "RSC": "_RSC"}
         return {
-            name: _read_map_for_metrics(shared_data / "official" / f"Scan_{scan}{suffix}.png")
+            name: _read_map_for_metrics(official_data / f"Scan_{scan}{suffix}.png")
             for name, suffix in suffixes.items()
         }
 
@@ -112,3 +115,26 @@ def report_table():
                  for name, cell in zip(names, row)} for row in rows]
 
     return parse
+
+
+@pytest.fixture
+def slow_clock(monkeypatch):
+    """``slow_clock(module)``: the module's ``time`` jumps 1000 s at every reading.
+
+    A run that takes no decision from the clock gives the same result under
+    it as under the real one; a run that does stops or changes course.
+    """
+    import itertools
+    import time
+    import types
+
+    def install(module):
+        readings = itertools.count()
+        start = time.monotonic()
+
+        def reading():
+            return start + 1000.0 * next(readings)
+
+        monkeypatch.setattr(module, "time", types.SimpleNamespace(monotonic=reading, perf_counter=reading))
+
+    return install

@@ -58,13 +58,18 @@ def make_targets(folder: Path, skin_levels, bad: bool = False) -> list[str]:
 
 
 class StockCluster:
-    """``dask scheduler`` and ``dask worker`` processes on 127.0.0.1, as a user starts them."""
+    """``dask scheduler`` and ``dask worker`` processes on 127.0.0.1, as a user starts them.
+
+    ``--dashboard-address 127.0.0.1:0``: their HTTP servers (dashboard,
+    health, metrics) otherwise listen on every interface, also with
+    ``--no-dashboard`` (docs/batch.md).
+    """
 
     def __init__(self, folder: Path):
         self.folder, self.workers = folder, {}
         self.file = folder / "scheduler.json"
         self.scheduler = subprocess.Popen(
-            [DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+            [DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--dashboard-address", "127.0.0.1:0",
              "--scheduler-file", str(self.file)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         wait_for(self.file.exists, 60, "scheduler file", self.scheduler)
         self.address = wait_for(lambda: json.loads(self.file.read_text() or "{}").get("address"), 10, "address")
@@ -73,7 +78,7 @@ class StockCluster:
         # No nanny: the process killed is the one running the scan.
         self.workers[name] = subprocess.Popen(
             [DASK, "worker", "--scheduler-file", str(self.file), "--nthreads", "1", "--no-nanny",
-             "--host", "127.0.0.1", "--no-dashboard", "--name", name,
+             "--host", "127.0.0.1", "--dashboard-address", "127.0.0.1:0", "--name", name,
              "--local-directory", str(self.folder / name)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     def client(self):
@@ -273,7 +278,7 @@ def test_tls_cluster_takes_only_clients_with_a_certificate(tmp_path):
             "-days", "2", "-out", "cluster.pem")
     tls = ["--tls-ca-file", "ca.pem", "--tls-cert", "cluster.pem", "--tls-key", "cluster.key"]
     scheduler = subprocess.Popen([DASK, "scheduler", "--protocol", "tls", "--host", "127.0.0.1", "--port", "0",
-                                  "--no-dashboard", "--scheduler-file", "scheduler.json", *tls],
+                                  "--dashboard-address", "127.0.0.1:0", "--scheduler-file", "scheduler.json", *tls],
                                  cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         file = tmp_path / "scheduler.json"

@@ -22,7 +22,8 @@ JSON_KEYS = {
     "score": {"ref", "pred", *COMPONENT_KEYS, "seconds"},
     "score --refs": {"refs", "preds", "scans", "medians", "score", "csv", "seconds"},
     "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
-               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "seed", "report"},
+               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "seed", "field_iterations",
+               "fixed_schedule", "threads", "reproduce", "report"},
     "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "octcl_version", "time_budget_s",
                          "seed", "options", "cluster", "wall_s"},
     "weights": {"weights", "ok"},
@@ -51,7 +52,7 @@ def run_both(capsys, command, *argv):
     return human, payload
 
 
-def test_phantom_render_maps_score_reproduce_an_official_scan(tmp_path, capsys, shared_data):
+def test_phantom_render_maps_score_reproduce_an_official_scan(tmp_path, capsys, official_data):
     phantom = tmp_path / "layers.txt"
     human, payload = run_both(capsys, "phantom", "phantom", "baseline", "--kind", "layers", "--seed", 42,
                               "-o", phantom)
@@ -62,7 +63,7 @@ def test_phantom_render_maps_score_reproduce_an_official_scan(tmp_path, capsys, 
     human, payload = run_both(capsys, "maps", "maps", scan)
     assert sorted(payload["maps"]) == ["OAC", "RSC", "SC"]
     assert all(path in human for path in payload["maps"].values())
-    official = shared_data / "official" / "Scan_Exp2_Layers_A.png"
+    official = official_data / "Scan_Exp2_Layers_A.png"
     human, result = run_both(capsys, "score", "score", official, scan)
     assert result["msssim_Struct"] > 0.9999
     assert f"{result['mean']:.5f}" in human and "MS-SSIM" in human
@@ -87,13 +88,12 @@ def test_weights_and_devices_print_summaries_or_json(capsys, lpips_weights):
     assert all(device["id"] in human for device in payload)
 
 
-def test_score_directories_writes_csv(tmp_path, capsys, shared_data):
+def test_score_directories_writes_csv(tmp_path, capsys, official_data):
     refs, preds = tmp_path / "refs", tmp_path / "preds"
     refs.mkdir(), preds.mkdir()
-    official = shared_data / "official"
     for name in ("Scan_Exp1_Uniform_A.png",):
-        (refs / name).write_bytes((official / name).read_bytes())
-        (preds / name).write_bytes((official / "Scan_Exp1_Uniform_B.png").read_bytes())
+        (refs / name).write_bytes((official_data / name).read_bytes())
+        (preds / name).write_bytes((official_data / "Scan_Exp1_Uniform_B.png").read_bytes())
     human, result = run_both(capsys, "score --refs", "score", "--refs", refs, "--preds", preds,
                              "--csv", tmp_path / "s.csv")
     assert "global" in human and f"{result['score']:.5f}" in human
@@ -127,6 +127,9 @@ def test_render_numpy_backend_and_truncate(tmp_path, capsys):
     (["invert", "--targets", "{tmp}", "--out", "{tmp}/out", "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"],
      "workers and threads per worker are the cluster's own"),
     (["invert", "--targets", "{tmp}", "--out", "{tmp}/out", "--tls-cert", "c.pem"], "TLS needs all three"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--iterations", "401"],
+     "iterations must be a whole number in [0, 400]"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--threads", "0"], "threads must be a whole number ≥ 1"),
 ])
 def test_bad_input_exits_2_with_one_line_reason(tmp_path, capsys, argv, message):
     (tmp_path / "bad.png").write_text("not an image")
@@ -134,6 +137,20 @@ def test_bad_input_exits_2_with_one_line_reason(tmp_path, capsys, argv, message)
     status, out, err = run(capsys, *[a.format(tmp=tmp_path) for a in argv])
     assert status == 2
     assert message in err and err.count("\n") == 1 and err.startswith("octcl ")
+
+
+def test_render_kernel_variants_agree(tmp_path, capsys):
+    """Both kernel variants, chosen on the command line, draw the same B-scan."""
+    phantom = tmp_path / "skin.txt"
+    Phantom.skin(3).save(phantom)
+    images = {}
+    for variant in ("work-item", "work-group"):
+        assert run(capsys, "render", phantom, "-o", tmp_path / f"{variant}.png", "--kernel-variant", variant)[0] == 0
+        images[variant] = read_png_rgb(tmp_path / f"{variant}.png").astype(int)
+    assert np.mean(images["work-item"] == images["work-group"]) > 0.999
+    with pytest.raises(SystemExit) as exit_info:
+        run(capsys, "render", phantom, "-o", tmp_path / "x.png", "--kernel-variant", "warp")
+    assert exit_info.value.code == 2 and "'warp'" in capsys.readouterr().err
 
 
 def test_failed_render_keeps_the_previous_output(tmp_path, capsys):
@@ -152,8 +169,8 @@ def test_entry_point_runs_as_a_program(tmp_path):
     assert devices and sum(d["default"] for d in devices) == 1
 
 
-def test_invert_prints_a_summary_or_json(tmp_path, capsys, shared_data):
-    target = shared_data / "official" / "Scan_Exp2_Layers_A.png"
+def test_invert_prints_a_summary_or_json(tmp_path, capsys, official_data):
+    target = official_data / "Scan_Exp2_Layers_A.png"
     status, human, err = run(capsys, "invert", target, "-o", tmp_path / "a.txt", "--time-budget", 20,
                              "--report", tmp_path / "a.json")
     assert status == 0 and "\r" not in err and "invert 100%" in err.splitlines()[-1]
@@ -168,15 +185,59 @@ def test_invert_prints_a_summary_or_json(tmp_path, capsys, shared_data):
     (targets / "sub").mkdir(parents=True)
     (targets / "sub" / "layers.png").write_bytes(target.read_bytes())
     status, out, err = run(capsys, "invert", "--targets", targets, "--out", tmp_path / "out",
-                           "--time-budget", 20, "--workers", 1, "--json")
+                           "--iterations", 1, "--field-iterations", 10, "--workers", 1, "--json")
     summary = json.loads(out)
     assert status == 0 and set(summary) == JSON_KEYS["invert --targets"]
     assert set(summary["scans"]["sub/layers.png"]) == {"scan", "status", *COMPONENT_KEYS, "seconds",
                                                        "peak_memory_mib", "cpu_s", "worker", "error"}
     assert summary["counts"]["inverted"] == 1 and (tmp_path / "out" / "sub" / "layers.txt").is_file()
+    assert summary["options"] == {"iterations": 1, "field_iterations": 10}
     assert "dashboard http://127.0.0.1:" in err and "invert 100%  1/1 scans: 1 inverted" in err
     # Everything done: a rerun starts no cluster and says so.
     status, human, err = run(capsys, "invert", "--targets", targets, "--out", tmp_path / "out",
-                             "--time-budget", 20, "--workers", 1)
+                             "--iterations", 1, "--field-iterations", 10, "--workers", 1)
     assert status == 0 and "1 scans: 1 resumed" in human and "report.html" in human
     assert "dashboard" not in err
+
+
+def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, official_data):
+    """`--seed 5 --iterations N` twice gives the same file, byte for byte; another seed another file.
+
+    The schedule is tiny to keep the test short; ``scripts/check_determinism.py``
+    runs longer ones in fresh processes and across thread counts.
+    """
+    import octcl
+    from octcl.host.target import read_target
+
+    target = official_data / "Scan_Exp2_Layers_A.png"
+    schedule = ["--iterations", 2, "--field-iterations", 20]
+    results = []
+    for name in ("a", "b"):
+        status, out, _ = run(capsys, "invert", target, "-o", tmp_path / f"{name}.txt", "--seed", 5, *schedule,
+                             "--quiet", "--json")
+        assert status == 0
+        results.append(json.loads(out))
+    assert (tmp_path / "a.txt").read_bytes() == (tmp_path / "b.txt").read_bytes()
+    assert results[0]["score"] == results[1]["score"]
+    first = results[0]
+    assert first["fixed_schedule"] and not first["stopped_by_deadline"]
+    assert (first["iterations"], first["field_iterations"], first["threads"]) == (2, 20, 1)
+    assert first["reproduce"] == "--seed 5 --iterations 2 --field-iterations 20 --threads 1"
+    # The same schedule from the target as an array (what a batch runner
+    # sends a worker), with another seed.
+    result = octcl.invert(read_target(target), tmp_path / "c.txt", seed=6, iterations=2, field_iterations=20,
+                          name="layers")
+    assert result.target == "layers" and result.iterations == 2
+    assert (tmp_path / "c.txt").read_bytes() != (tmp_path / "a.txt").read_bytes()
+
+
+def test_invert_fixed_schedule_past_its_budget_fails_loudly(tmp_path, capsys, official_data):
+    target = official_data / "Scan_Exp2_Layers_A.png"
+    output = tmp_path / "a.txt"
+    status, out, err = run(capsys, "invert", target, "-o", output, "--iterations", 2, "--field-iterations", 10**6,
+                           "--time-budget", 10)
+    assert status == 2 and out == ""
+    message = err.strip().splitlines()[-1]
+    assert message.startswith("octcl invert: error: ") and str(target) in message
+    assert "did not fit the time budget of 10 s" in message and "in stage 1" in message
+    assert "nothing was written" in message and not output.exists()

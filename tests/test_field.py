@@ -39,8 +39,8 @@ def test_target_display_of_levels_the_scanner_never_writes():
     assert np.all((display[1:] >= np.arange(1, 256) / 256) & (display[1:] <= np.arange(3, 258) / 256))
 
 
-def test_target_levels_of_a_read_scan(shared_data):
-    path = shared_data / "official" / "Scan_Exp1_Uniform_A.png"
+def test_target_levels_of_a_read_scan(official_data):
+    path = official_data / "Scan_Exp1_Uniform_A.png"
     levels = target_levels(read_scan(path))
     assert levels.dtype == np.uint8
     assert np.array_equal(levels, read_png_rgb(path)[..., 0])
@@ -106,8 +106,8 @@ def test_torch_operator_and_pseudo_inverse():
 
 
 @pytest.fixture(scope="module")
-def uniform_levels(shared_data):
-    return target_levels(read_scan(shared_data / "official" / "Scan_Exp1_Uniform_A.png"))
+def uniform_levels(official_data):
+    return target_levels(read_scan(official_data / "Scan_Exp1_Uniform_A.png"))
 
 
 def test_fit_field_reduces_the_loss(uniform_levels):
@@ -152,3 +152,16 @@ def test_fit_field_of_a_flat_target_is_finite(level):
 def test_fit_field_refuses_a_target_of_the_wrong_size():
     with pytest.raises(ValueError, match="256x512"):
         fit_field(np.zeros((10, 20), dtype=np.uint8))
+
+
+def test_fit_field_without_a_budget_takes_no_decision_from_the_clock(uniform_levels, slow_clock):
+    import octcl.host.field as field_module
+
+    fits = [fit_field(uniform_levels, iterations=8, time_budget_s=None, threads=1)]
+    slow_clock(field_module)
+    fits.append(fit_field(uniform_levels, iterations=8, time_budget_s=None, threads=1))
+    assert [fit.iterations for fit in fits] == [8, 8]
+    np.testing.assert_array_equal(fits[0].field, fits[1].field)
+    np.testing.assert_array_equal(fits[0].losses, fits[1].losses)
+    # With a budget the same clock ends the fit before its first step.
+    assert fit_field(uniform_levels, iterations=8, time_budget_s=60.0, threads=1).iterations == 0

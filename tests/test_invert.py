@@ -10,10 +10,9 @@ import time
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from octcl._io import ImageFormatError, write_grey_png
-from octcl.host.invert import invert, read_target
+from octcl.host.invert import invert
 from octcl.host.refine import Phase, RefineSchedule
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.scorer import COMPONENTS
@@ -22,8 +21,8 @@ SHORT = RefineSchedule(phases=(Phase(4, 0.01, 0.02),), restarts=(), score_every=
 
 
 @pytest.fixture(scope="module")
-def layers_path(shared_data):
-    return shared_data / "official" / "Scan_Exp2_Layers_A.png"
+def layers_path(official_data):
+    return official_data / "Scan_Exp2_Layers_A.png"
 
 
 def _assert_contract(path):
@@ -55,38 +54,6 @@ def test_bad_targets_are_refused_naming_the_file(tmp_path, kind):
 def test_bad_budget_is_refused(layers_path, tmp_path):
     with pytest.raises(ValueError, match="time_budget_s"):
         invert(layers_path, tmp_path / "out.txt", time_budget_s=0)
-
-
-def test_rgb_target_is_accepted_like_its_grey_rgba(layers_path, tmp_path):
-    """An RGB PNG reads as the mean of its channels; no alpha is needed."""
-    rgb = tmp_path / "rgb.png"
-    Image.open(layers_path).convert("RGB").save(rgb)
-    np.testing.assert_array_equal(read_target(rgb), read_target(layers_path))
-
-
-def test_array_target_is_its_grey_rgba_png(layers_path):
-    """Levels as an array read and score as the grey RGBA PNG the scanner writes of them."""
-    from octcl._io import read_png_rgb
-    from octcl.host.loss import ExactScore
-
-    levels = read_png_rgb(layers_path)[..., 0]
-    np.testing.assert_array_equal(read_target(levels), read_target(layers_path))
-    from_file, from_array = ExactScore(layers_path).target_maps, ExactScore(levels).target_maps
-    for name in from_file:
-        np.testing.assert_array_equal(from_array[name], from_file[name])
-
-
-@pytest.mark.parametrize("array, message", [
-    (np.zeros((256, 512)), "scan.npy: float64 array"),
-    (np.zeros((256, 512, 3), np.uint8), "scan.npy: 3-D array"),
-    (np.full((256, 512), 255, np.uint8), "scan.npy: every pixel is white"),
-])
-def test_bad_array_targets_are_refused(array, message, tmp_path):
-    with pytest.raises(ImageFormatError, match=message):
-        read_target(array, source="scan.npy")
-    with pytest.raises(ImageFormatError, match=message.replace("scan.npy", "target array")):
-        invert(array, tmp_path / "out.txt", time_budget_s=30)
-    assert not (tmp_path / "out.txt").exists()
 
 
 def test_budget_is_respected_and_report_written(layers_path, tmp_path):

@@ -7,6 +7,7 @@ import pytest
 import torch
 from PIL import Image
 
+import octcl._io
 from octcl import maps
 from octcl._io import GREY_LUT, read_png_rgb, read_scan
 
@@ -27,17 +28,16 @@ TWIN_MAX_LEVEL_DIFFERENCE = 2
 
 
 @pytest.fixture(scope="module")
-def official(shared_data):
+def official(official_data):
     """Per official scan: (scan path, float32 scan, {map: official uint8 levels})."""
-    folder = shared_data / "official"
     cases = {}
     for stem in OFFICIAL_SCANS:
         official_levels = {}
         for name in maps.MAP_NAMES:
-            rgb = read_png_rgb(folder / f"{stem}_{name}.png")
+            rgb = read_png_rgb(official_data / f"{stem}_{name}.png")
             assert (rgb == rgb[..., :1]).all(), f"{stem}_{name}.png is not grey"
             official_levels[name] = rgb[..., 0]
-        path = folder / f"{stem}.png"
+        path = official_data / f"{stem}.png"
         cases[stem] = (path, read_scan(path), official_levels)
     return cases
 
@@ -246,10 +246,10 @@ def test_write_maps_replaces_existing_files_atomically(official, tmp_path, monke
     # A write that fails leaves the previous file whole and no temporary file.
     previous = destination.read_bytes()
 
-    def failing_save(*args, **kwargs):
+    def failing_sync(fd):  # the data could not all reach the disk
         raise OSError("disk full")
 
-    monkeypatch.setattr(Image.Image, "save", failing_save)
+    monkeypatch.setattr(octcl._io.os, "fsync", failing_sync)
     with pytest.raises(OSError, match="disk full"):
         maps.write_maps(path, out_dir=tmp_path)
     assert destination.read_bytes() == previous

@@ -2,13 +2,20 @@
 
 import os
 import re
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 import octcl._io
-from octcl.config import ScannerConfig
-from octcl.phantom import Phantom, PhantomError
+import octcl.phantom
+from octcl.config import DEFAULT_CONFIG, ScannerConfig
+from octcl.phantom import (MAX_ROW_BYTES, Phantom, PhantomError, _format_rows, _parse_rows, _parse_rows_exact,
+                           _round_significant)
 
 SMALL = ScannerConfig(max_scatterers=5)
 
@@ -37,7 +44,7 @@ def as_written(value):
 
 
 # ---------------------------------------------------------------- round trip
-def test_save_then_load_keeps_six_significant_digits(tmp_path):
+def test_save_writes_eight_significant_digits_by_default(tmp_path):
     rng = np.random.default_rng(0)
     original = Phantom(rng.uniform(-1536, 1536, 200), rng.uniform(-10, 10, 200),
                        rng.uniform(0, 1536, 200), rng.uniform(0, 100, 200))
@@ -45,20 +52,21 @@ def test_save_then_load_keeps_six_significant_digits(tmp_path):
     original.save(path)
     loaded = Phantom.load(path)
     assert len(loaded) == 200
-    # 6 significant digits: relative error at most half a unit in the 6th digit.
-    np.testing.assert_allclose(loaded.as_array(), original.as_array(), rtol=5.000001e-6, atol=0)
+    # 8 significant digits: relative error at most half a unit in the 8th digit.
+    np.testing.assert_allclose(loaded.as_array(), original.as_array(), rtol=5.000001e-8, atol=0)
     assert not np.array_equal(loaded.as_array(), original.as_array())  # it did round
     first = path.read_text().splitlines()[0].split()
     assert len(first) == 4
-    assert all(re.fullmatch(r"-?\d\.\d{5}e[+-]\d\d", token) for token in first), first
+    assert all(re.fullmatch(r"-?\d\.\d{7}e[+-]\d\d", token) for token in first), first
 
 
-def test_save_then_load_is_exact_for_six_digit_values(tmp_path):
+def test_save_then_load_is_exact_for_values_with_fewer_digits(tmp_path):
     original = Phantom([-1536.0, 1.23456e-3, 1536.0], [-10.0, 0.0, 2.5],
                        [0.0, 1234.56, 1536.0], [0.0, 0.01, 100.0])
     path = tmp_path / "p.txt"
-    original.save(path)
-    assert np.array_equal(Phantom.load(path).as_array(), original.as_array())
+    for digits in (6, 8):
+        original.save(path, significant_digits=digits)
+        assert np.array_equal(Phantom.load(path).as_array(), original.as_array())
 
 
 def test_load_accepts_whitespace_commas_blank_and_comment_lines(tmp_path):
@@ -78,6 +86,184 @@ def test_load_accepts_whitespace_commas_blank_and_comment_lines(tmp_path):
 def test_load_without_trailing_newline(tmp_path):
     path = write(tmp_path, "1 2 3 4\n5 6 7 8")
     assert len(Phantom.load(path)) == 2
+
+
+def awkward_values(rng, count):
+    """Values whose printing is hard to get right: wide magnitudes, ties, powers of ten, signed zeros."""
+    return np.concatenate([
+        rng.uniform(-1536, 1536, count), rng.uniform(0, 100, count),
+        rng.choice([-1, 1], count) * 10.0 ** rng.uniform(-300, 300, count),
+        rng.integers(-10**6, 10**6, count) / 2.0 ** rng.integers(0, 30, count),  # binary fractions: exact ties
+        [float(f"{v:.{k}f}") for v, k in zip(rng.uniform(-2000, 2000, count), rng.integers(0, 8, count))],
+        [0.0, -0.0, 9.999996, 9.999995, 99.5, 0.125, 2.5, 100.0, 1536.0, 1e22, 1e23, 5e-324,
+         2.2250738585072014e-308, 1.7976931348623157e308, 1e-100, 9.9999e99, np.nan, np.inf, -np.inf],
+    ])
+
+
+@pytest.mark.parametrize("digits", range(1, 18))
+def test_written_text_is_pythons_e_format(digits):
+    rng = np.random.default_rng(digits)
+    values = awkward_values(rng, 2000 if digits <= 12 else 200)
+    rows = values[:values.size // 4 * 4].reshape(-1, 4)
+    spec = f".{digits - 1}e"
+    expected = "".join(" ".join(format(v, spec) for v in row) + "\n" for row in rows.tolist())
+    assert _format_rows(rows, digits).decode() == expected
+
+
+@pytest.mark.parametrize("digits", [1, 5, 6, 9, 15, 17])
+def test_round_significant_is_percent_e_read_back(digits):
+    values = awkward_values(np.random.default_rng(100 + digits), 2000)
+    expected = np.array([float(f"%.{digits - 1}e" % v) for v in values.tolist()])
+    np.testing.assert_array_equal(_round_significant(values, digits), expected)
+    assert np.array_equal(np.signbit(_round_significant(values, digits)), np.signbit(expected))
+
+
+@pytest.mark.parametrize("digits", [4, 6, 7, 9, 12, 17])
+def test_save_load_round_trip_reads_back_the_printed_values(tmp_path, digits):
+    rng = np.random.default_rng(digits)
+    x, z = rng.uniform(-1500, 1500, 3000), rng.uniform(0, 1500, 3000)  # in range once rounded
+    original = Phantom(np.append(x, [-1536.0, 0.0, -0.0]), np.append(rng.uniform(-9.9, 9.9, 3000), [10.0, 0, 0]),
+                       np.append(z, [1536.0, 0.0, 1e-30]), np.append(rng.uniform(0, 99.9, 3000), [100.0, 0, 1e-7]))
+    path = tmp_path / "p.txt"
+    original.save(path, significant_digits=digits)
+    expected = np.array([[float(format(v, f".{digits - 1}e")) for v in row] for row in original.as_array().tolist()])
+    loaded = Phantom.load(path)
+    np.testing.assert_array_equal(loaded.as_array(), expected)
+    assert np.array_equal(np.signbit(loaded.as_array()), np.signbit(expected))
+
+
+def rows_of(*columns):
+    """Hypothesis: an (N, 4) float64 array whose columns are drawn from the given float strategies."""
+    return st.integers(1, 40).flatmap(lambda count: st.tuples(
+        *(arrays(np.float64, count, elements=column) for column in columns)).map(lambda c: np.stack(c, axis=1)))
+
+
+@settings(max_examples=300, deadline=None)
+@given(rows=rows_of(*[st.floats(width=64)] * 4), digits=st.integers(1, 17))
+@example(rows=np.array([[0.0, 0.0, 0.0, -7.46141353e-39]]), digits=1)  # a negative value beyond 1e±22
+def test_any_float_is_written_as_python_writes_it_and_read_back_as_float_reads_it(rows, digits):
+    spec = f".{digits - 1}e"
+    tokens = [[format(v, spec) for v in row] for row in rows.tolist()]
+    text = _format_rows(rows, digits)
+    assert text.decode() == "".join(" ".join(row) + "\n" for row in tokens)
+    values = _parse_rows(text)
+    if np.isfinite(rows).all():  # 'nan' and 'inf' are left to the line-by-line reader, which refuses them
+        expected = np.array([[float(token) for token in row] for row in tokens])
+        assert values.tobytes() == expected.tobytes()  # bit for bit, signed zeros included
+    else:
+        assert values is None
+
+
+IN_RANGE = (st.floats(-1536, 1536), st.floats(-10, 10), st.floats(0, 1536), st.floats(0, 100))
+
+
+@settings(max_examples=150, deadline=None)
+@given(rows=rows_of(*IN_RANGE), digits=st.integers(4, 17))  # 3 digits write 1536 as 1.54e+03
+@example(rows=np.array([[-1e-30, -2.5e-300, 5e-324, 99.99609375]]), digits=6)
+def test_save_load_round_trip_is_exact_at_the_written_precision(rows, digits):
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "p.txt"
+        Phantom(*rows.T).save(path, significant_digits=digits)
+        loaded = Phantom.load(path).as_array()
+    spec = f".{digits - 1}e"
+    expected = np.array([[float(format(v, spec)) for v in row] for row in rows.tolist()])
+    assert loaded.tobytes() == expected.tobytes()
+    # The text is within half a unit of its last digit of v, and the double
+    # read from it no farther from the text than v: within a unit of v.
+    relative = np.abs(loaded - rows) / np.maximum(np.abs(rows), np.finfo(float).tiny)
+    assert relative.max() <= 10.0 ** (1 - digits)
+
+
+def test_byte_order_mark_and_crlf_line_ends_are_read(tmp_path):
+    rows = "# x y z E\r\n1.00000e+00 2.0 3e1 4\r\n\r\n-5, 6, 7, 8\r\n"
+    plain = write(tmp_path, rows.replace("\r\n", "\n"), "plain.txt")
+    windows = tmp_path / "windows.txt"
+    windows.write_bytes(b"\xef\xbb\xbf" + rows.encode())
+    np.testing.assert_array_equal(Phantom.load(windows).as_array(), [[1, 2, 30, 4], [-5, 6, 7, 8]])
+    np.testing.assert_array_equal(Phantom.load(windows).as_array(), Phantom.load(plain).as_array())
+    written = tmp_path / "written.txt"
+    Phantom([1.5, -2.0], [0.25, 0.0], [3.0, 1000.0], [4.0, 0.5]).save(written)
+    windows.write_bytes(b"\xef\xbb\xbf" + written.read_bytes().replace(b"\n", b"\r\n"))
+    np.testing.assert_array_equal(Phantom.load(windows).as_array(), Phantom.load(written).as_array())
+
+
+def test_bad_value_in_a_crlf_file_names_its_line(tmp_path):
+    path = tmp_path / "windows.txt"
+    path.write_bytes(b"\xef\xbb\xbf0 0 100 1\r\n\r\n0 0 100 -1\r\n")
+    with pytest.raises(PhantomError, match=r":3: E = -1 outside \[0, 100\]"):
+        Phantom.load(path)
+
+
+def test_lines_with_separators_but_no_values_are_skipped(tmp_path):
+    path = write(tmp_path, ", 1 2 3 4\n,,,\n , \n5,,6 ,7\t8 ,\n")
+    np.testing.assert_array_equal(Phantom.load(path).as_array(), [[1, 2, 3, 4], [5, 6, 7, 8]])
+
+
+@pytest.mark.parametrize("text", [
+    "1.00000e+00 2.00000e+00 3.00000e+00 4.00000e+00\n-1.50000e+03 -1.00000e+01 1.53600e+03 1.00000e-02\n",
+    "1.0E+00,2.5E-01,3.0E+02,4.0E+00\r\n",          # upper-case, commas, CRLF: still '%.1E'
+    "1.5 2.0 3 4\n-1536 -10 0 0\n",                  # plain decimals: np.loadtxt
+    "1.000000000000000000e+00 2.000000000000000000e+00 3.000000000000000000e+00 4.0e+00\n",
+])
+def test_common_formats_take_the_fast_reader(tmp_path, monkeypatch, text):
+    path = write(tmp_path, text)
+    expected = Phantom.load(path).as_array()
+
+    def refuse(*args):
+        raise AssertionError("the exact reader ran")
+
+    monkeypatch.setattr(octcl.phantom, "_parse_rows_exact", refuse)
+    np.testing.assert_array_equal(Phantom.load(path).as_array(), expected)
+
+
+def random_phantom_text(rng) -> str:
+    """A small phantom file in a random style, often with something odd or wrong in it."""
+    decimals, letter = int(rng.integers(0, 7)), str(rng.choice(["e", "E"]))
+    styles = [lambda v: f"{v:.{decimals}{letter}}", lambda v: f"{v:.3f}", lambda v: repr(v), lambda v: f"{v:g}"]
+    style = styles[int(rng.integers(0, len(styles)))]
+    odd_tokens = ["1e5000", "nan", "-inf", "abc", "1e", "-", "1.2.3", "0x10", "1_0", "\u0661", "+.5", "5.",
+                  "1e-5000", "--1", "1-2", "\u00b5", "1,5", "#"]
+    odd_lines = ["", "   ", ",,", "# comment", "  # indented µm comment", "1 2 3", "1 2 3 4 5", "\t,\t",
+                 "0 0 100 1 # trailing", ", 0 0 100 1", "\ufeff0 0 1 1"]
+    separators = [" ", " ", "\t", ",", ", ", "  ", " ,", "\u00a0"]
+    line_ends = ["\n", "\n", "\r\n", "\r", "\x0b", "\x0c", "\u2028"]
+    odd = rng.random() < 0.6
+    lines = []
+    for _ in range(int(rng.integers(1, 8))):
+        if odd and rng.random() < 0.15:
+            lines.append(str(rng.choice(odd_lines)))
+            continue
+        row = [rng.uniform(-1536, 1536), rng.uniform(-10, 10), rng.uniform(0, 1536), rng.uniform(0, 100)]
+        tokens = [style(v) for v in row]
+        if odd and rng.random() < 0.2:
+            tokens[int(rng.integers(0, 4))] = str(rng.choice(odd_tokens))
+        separator = str(rng.choice(separators)) if odd else " "
+        lines.append(separator.join(tokens))
+    line_end = str(rng.choice(line_ends)) if odd else "\n"
+    text = line_end.join(lines) + (line_end if rng.random() < 0.8 else "")
+    return ("\ufeff" if rng.random() < 0.2 else "") + text
+
+
+def outcome(read, path):
+    try:
+        return read(path).tobytes()
+    except PhantomError as exc:
+        return str(exc)
+
+
+def test_fast_reader_agrees_with_the_exact_reader_on_random_files(tmp_path):
+    """Phantom.load must return what the line-by-line reader returns, or raise its message."""
+    rng = np.random.default_rng(7)
+    config = ScannerConfig(max_scatterers=6)
+
+    def exact(path):
+        return _parse_rows_exact(path, path.read_bytes(), config, False, 10.0)
+
+    for number in range(400):
+        path = tmp_path / f"{number}.txt"
+        path.write_bytes(random_phantom_text(rng).encode())
+        assert outcome(lambda p: Phantom.load(p, config).as_array(), path) == outcome(exact, path), \
+            path.read_bytes()
 
 
 # ------------------------------------------------------------------ baseline
@@ -159,6 +345,48 @@ def test_bad_row_error_names_file_line_and_value(tmp_path, line, fragments):
         assert fragment in message, message
 
 
+def octcl_file_with(tmp_path, line_number, line, rows=3000):
+    """A phantom as octcl writes it (``rows`` rows, 6 digits) with line ``line_number`` replaced by ``line``."""
+    rng = np.random.default_rng(line_number)
+    path = tmp_path / "written.txt"
+    Phantom(rng.uniform(-1536, 1536, rows), rng.uniform(-3, 3, rows), rng.uniform(0, 1536, rows),
+            rng.uniform(0, 100, rows)).save(path, significant_digits=6)
+    lines = path.read_bytes().split(b"\n")
+    lines[line_number - 1] = line.encode()
+    path.write_bytes(b"\n".join(lines))
+    return path
+
+
+@pytest.mark.parametrize("line, message", [
+    ("1.00000e+00 2.00000e+00 3.00000e+00", "expected 4 columns (x y z E), found 3: '1.00000e+00 2.00000e+00 3.00000e+00'"),
+    ("1.00000e+00 2.00000e+00 3.00000e+00 4.00000e+00 5.00000e+00",
+     "expected 4 columns (x y z E), found 5: '1.00000e+00 2.00000e+00 3.00000e+00 4.00000e+00 5.00000e+00'"),
+    ("1.00000e+00 2.0000O0e+00 3.00000e+00 4.00000e+00", "y = '2.0000O0e+00' is not a number"),
+    ("1.00000e+00 2.00000e+00 3.00000e+00 nan", "E = 'nan' is not finite"),
+    ("1.00000e+400 2.00000e+00 3.00000e+00 4.00000e+00", "x = '1.00000e+400' is not finite"),
+    ("1.00000e+00 2.00000e+00 3.00000e+00 -1.00000e-02", "E = -1.00000e-02 outside [0, 100]"),
+    ("1.00000e+00 2.00000e+00 1.53601e+03 4.00000e+00", "z = 1.53601e+03 outside [0, 1536]"),
+    ("-1.53700e+03 2.00000e+00 3.00000e+00 4.00000e+00", "x = -1.53700e+03 outside [-1536, 1536]"),
+    ("1.00000e+00 1.05000e+01 3.00000e+00 4.00000e+00", "y = 1.05000e+01 outside [-10, 10]"),
+])
+def test_errors_in_files_the_fast_reader_takes_keep_file_line_and_value(tmp_path, line, message):
+    """An octcl-written file goes to the fast reader; a bad row in it is still reported as before."""
+    path = octcl_file_with(tmp_path, 2345, line)
+    with pytest.raises(PhantomError) as caught:
+        Phantom.load(path)
+    assert str(caught.value) == f"{path}:2345: {message}"
+
+
+def test_too_many_rows_in_a_file_the_fast_reader_takes_keeps_its_message(tmp_path):
+    path = octcl_file_with(tmp_path, 1, "# header", rows=3001)
+    with pytest.raises(PhantomError) as caught:
+        Phantom.load(path, config=ScannerConfig(max_scatterers=2999))
+    assert str(caught.value) == (f"{path}: 3,000 rows, but the scanner reads only the first 2,999 (number of "
+                                 "scatterers in b-scan); use --truncate (Phantom.load(..., truncate=True)) "
+                                 "to keep those")
+    assert len(Phantom.load(path, config=ScannerConfig(max_scatterers=3000))) == 3000
+
+
 def test_range_limits_themselves_are_accepted(tmp_path):
     path = write(tmp_path, "-1536 -10 0 0\n1536 10 1536 100\n")
     np.testing.assert_array_equal(Phantom.load(path).as_array(),
@@ -212,6 +440,39 @@ def test_truncated_rows_are_not_validated(tmp_path):
 def test_exactly_max_rows_is_accepted(tmp_path):
     path = write(tmp_path, "".join(f"{i} 0 {i} 1\n" for i in range(5)))
     assert len(Phantom.load(path, config=SMALL)) == 5
+
+
+def test_file_far_larger_than_the_rows_allowed_is_refused_before_reading(tmp_path, monkeypatch):
+    path = tmp_path / "huge.txt"
+    with open(path, "wb") as handle:  # sparse: 8 GB that reading would have to go through
+        handle.truncate(8 * 2**30)
+    monkeypatch.setattr(octcl.phantom, "_parse_rows", None)  # nothing may get as far as parsing
+    with pytest.raises(PhantomError) as caught:
+        Phantom.load(path)
+    message = str(caught.value)
+    limit = DEFAULT_CONFIG.max_scatterers * MAX_ROW_BYTES
+    assert message.startswith(f"{path}: {8 * 2**30:,} bytes"), message
+    assert f"{limit:,} bytes" in message and "--truncate" in message
+
+
+def test_size_limit_scales_with_the_rows_the_scanner_reads(tmp_path):
+    row = "1.00000e+00 0.00000e+00 1.00000e+00 1.00000e+00\n"
+    path = write(tmp_path, row * (5 * MAX_ROW_BYTES // len(row) + 1))
+    with pytest.raises(PhantomError, match=f"{5 * MAX_ROW_BYTES:,} bytes"):
+        Phantom.load(path, config=SMALL)
+    loaded = Phantom.load(path, config=SMALL, truncate=True)  # reads the first 1280 bytes only
+    np.testing.assert_array_equal(loaded.as_array(), np.ones((5, 4)) * [1, 0, 1, 1])
+
+
+def test_truncate_refuses_rows_longer_than_the_size_limit_allows(tmp_path):
+    long_row = "0 0 1 1" + " " * 500 + "\n"
+    path = write(tmp_path, long_row * 10)
+    with pytest.raises(PhantomError) as caught:
+        Phantom.load(path, config=SMALL, truncate=True)
+    assert str(caught.value).startswith(f"{path}: the first {2 * len(long_row):,} bytes hold only 2 rows")
+    path = write(tmp_path, "#" + "-" * (5 * MAX_ROW_BYTES) + "\n" + "0 0 1 1\n" * 10)
+    with pytest.raises(PhantomError, match=f"no line ends within the first {5 * MAX_ROW_BYTES:,} bytes"):
+        Phantom.load(path, config=SMALL, truncate=True)
 
 
 def test_binary_file_is_refused_as_not_text(tmp_path):

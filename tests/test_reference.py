@@ -339,8 +339,8 @@ OFFICIAL_SCANS = [
 
 @pytest.mark.official
 @pytest.mark.parametrize("kind, seed, scan", OFFICIAL_SCANS, ids=[s[2] for s in OFFICIAL_SCANS])
-def test_reference_reproduces_official_scan(shared_data, official_reference, kind, seed, scan):
-    official = read_png_rgb(shared_data / "official" / scan, shape=DEFAULT_CONFIG.shape)[:, :, 0]
+def test_reference_reproduces_official_scan(official_data, official_reference, kind, seed, scan):
+    official = read_png_rgb(official_data / scan, shape=DEFAULT_CONFIG.shape)[:, :, 0]
     start = time.perf_counter()
     levels = official_reference(kind, seed).levels
     seconds = time.perf_counter() - start

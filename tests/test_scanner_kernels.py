@@ -1,10 +1,12 @@
 """OpenCL scanner kernels against the float64 reference, including stiff and extreme scenes.
 
-Agreement is measured on the complex A-scans: max |A_kernel − A_ref| relative
-to max |A_ref|. Float32 kernels with the default spreading width W = 8 sit at
-~1e−6 (float32 accumulation over thousands of scatterers; the spreading itself
-is ~1e−8), so 1e−5 is asserted; float64 kernels at ~1e−8 (the spreading
-kernel's own error), so 1e−7 is asserted.
+Every test runs both kernel variants (one work-item per A-scan, one
+work-group per A-scan) on the CPU device. Agreement is measured on the
+complex A-scans: max |A_kernel − A_ref| relative to max |A_ref|. Float32
+kernels with the default spreading width W = 8 sit at ~1e−6 (float32
+accumulation over thousands of scatterers; the spreading itself is ~1e−8),
+so 1e−5 is asserted; float64 kernels at ~1e−8 (the spreading kernel's own
+error), so 1e−7 is asserted.
 """
 
 import numpy as np
@@ -14,24 +16,29 @@ from octcl import _reference as ref
 from octcl.config import ScannerConfig
 from octcl.phantom import Phantom
 from octcl.render import Rendering, display_vjp, render
-from octcl._scanner_op import KernelSettings, ScannerKernels
+from octcl._scanner_op import VARIANTS, KernelSettings, ScannerKernels
 
 #: A narrow scanner (64 A-scans, 384 µm) keeps the float64 reference fast.
 NARROW = ScannerConfig(a_scans=64, xmax_um=384.0)
 
 
-@pytest.fixture(scope="module")
-def kernels32():
-    return ScannerKernels(NARROW)
+@pytest.fixture(scope="module", params=VARIANTS)
+def variant(request):
+    return request.param
 
 
 @pytest.fixture(scope="module")
-def kernels64():
-    return ScannerKernels(NARROW, KernelSettings(double=True))
+def kernels32(variant):
+    return ScannerKernels(NARROW, KernelSettings(variant=variant))
+
+
+@pytest.fixture(scope="module")
+def kernels64(variant):
+    return ScannerKernels(NARROW, KernelSettings(double=True, variant=variant))
 
 
 def kernel_rendering(kernels, phantom, for_adjoint=False):
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore"):  # E = 0 → u = −∞, a = 0
         log_energy = np.log(phantom.energy_pct)
     kernels.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
     return Rendering.from_a_scans(kernels.forward(for_adjoint))
@@ -135,22 +142,22 @@ def test_single_scatterer_and_empty_phantom(kernels32):
     assert grad_u.size == 0 and grad_z.size == 0
 
 
-def test_all_scatterers_in_one_window():
+def test_all_scatterers_in_one_window(variant):
     """300,000 scatterers within one A-scan's contribution window (full-size scanner)."""
     rng = np.random.default_rng(7)
     count = 300_000
     phantom = Phantom(rng.uniform(-5, 5, count), rng.uniform(-3, 3, count),
                       rng.uniform(0, 1536, count), np.full(count, 1e-3))
-    compare(ScannerKernels(), phantom, 1e-5)
+    compare(ScannerKernels(settings=KernelSettings(variant=variant)), phantom, 1e-5)
 
 
-def test_full_phantom_at_the_caps():
+def test_full_phantom_at_the_caps(variant):
     """300,000 rows at the limits: |x| = 1536, |y| = 3, z ∈ {0, 1536}, E = 100 (mirrors)."""
     count = 300_000
     index = np.arange(count)
     phantom = Phantom(np.where(index % 2, 1536.0, -1536.0), np.where(index % 3, 3.0, -3.0),
                       np.where(index % 5, 1536.0, 0.0), np.full(count, 100.0))
-    compare(ScannerKernels(), phantom, 1e-5)
+    compare(ScannerKernels(settings=KernelSettings(variant=variant)), phantom, 1e-5)
 
 
 def concat(*phantoms):
@@ -222,7 +229,7 @@ def test_min_transmission_stops_early_with_bounded_error(kernels32):
     rng = np.random.default_rng(10)
     phantom = random_phantom(3000, rng, energy=(5.0, 30.0))
     exact = kernel_rendering(kernels32, phantom)
-    skipping = ScannerKernels(NARROW, KernelSettings(min_transmission=1e-3))
+    skipping = ScannerKernels(NARROW, KernelSettings(min_transmission=1e-3, variant=kernels32.variant))
     approx = kernel_rendering(skipping, phantom)
     error = np.abs(approx.a_scans - exact.a_scans).max() / np.abs(exact.a_scans).max()
     assert 0 < error < 1e-2
@@ -247,10 +254,152 @@ def test_straight_through_levels_scale_the_display_gradient(kernels32):
 
 @pytest.mark.official
 @pytest.mark.parametrize("kind", ["uniform", "layers"])
-def test_official_phantoms_match_the_reference_pixel_for_pixel(kind, official_reference):
+def test_official_phantoms_match_the_reference_pixel_for_pixel(kind, variant, official_reference):
     """Done-when of the kernels: ≥ 99.9 % identical 8-bit pixels, colour index never off by more than 1."""
-    ours = render(Phantom.baseline(kind, 42))
+    ours = render(Phantom.baseline(kind, 42), settings=KernelSettings(variant=variant))
     theirs = official_reference(kind, 42)
     identical = np.mean(ours.levels == theirs.levels)
     index_error = np.abs(ref.colour_index(ours.display).astype(int) - ref.colour_index(theirs.display))
     assert identical >= 0.999 and index_error.max() <= 1, f"{identical:.5%} identical, max {index_error.max()}"
+
+
+# ------------------------------------------------------- overall energy scale
+def _uniform_scene(energy_pct, count=300_000 * NARROW.a_scans // 512, seed=13):
+    """The full scanner's scatterer density (300,000 over 512 A-scans) on the narrow scanner."""
+    rng = np.random.default_rng(seed)
+    half_width = NARROW.xmax_um / 2
+    return Phantom(rng.uniform(-half_width, half_width, count), rng.uniform(-3, 3, count),
+                   rng.uniform(0, 1536, count), np.broadcast_to(energy_pct, (count,)))
+
+
+def _assert_renders_as_reference(kernels, phantom):
+    ours = kernel_rendering(kernels, phantom)
+    theirs = render(phantom, kernels.config, backend="numpy")
+    index_error = np.abs(ref.colour_index(ours.display).astype(int) - ref.colour_index(theirs.display))
+    identical = np.mean(ours.levels == theirs.levels)
+    assert identical >= 0.999 and index_error.max() <= 1, f"{identical:.5%} identical, max {index_error.max()}"
+
+
+@pytest.mark.parametrize("energy_pct", [1.0, 1e-20, 1e-80, 1e-200, 1e-300])
+def test_uniform_energy_renders_as_the_reference_at_any_scale(kernels32, energy_pct):
+    """The display is normalised to its brightest pixel, so one energy for all renders the
+    same scan at any scale (shadowing aside); float32 kernels keep that down to E = 1e−300 %."""
+    _assert_renders_as_reference(kernels32, _uniform_scene(energy_pct))
+
+
+def test_energies_spanning_the_whole_legal_range(kernels32):
+    rng = np.random.default_rng(14)
+    count = 300_000 * NARROW.a_scans // 512
+    _assert_renders_as_reference(kernels32, _uniform_scene(10.0 ** rng.uniform(-300, 2, count)))
+
+
+@pytest.mark.parametrize("energy_pct", [5e-324, 1e-320, 2.2250738585072014e-308],
+                         ids=["smallest-subnormal", "subnormal", "smallest-normal"])
+def test_smallest_positive_float64_energies(kernels32, energy_pct):
+    """E/100 underflows (to 0 or to a coarse subnormal) in the scanner's a = sqrt(E/100): the kernels follow."""
+    _assert_renders_as_reference(kernels32, _uniform_scene(energy_pct))
+
+
+def test_gradients_of_a_scaled_phantom_match_finite_differences(kernels32):
+    """Energies × 1e−250: the display and ∂L/∂z, ∂L/∂u do not depend on the scale."""
+    rng = np.random.default_rng(15)
+    phantom = random_phantom(800, rng, energy=(1e-250, 5e-250), half_width_um=60.0)
+    target = rng.uniform(0, 1, NARROW.shape)
+    weight = rng.uniform(0, 1, NARROW.shape)
+    rendering = kernel_rendering(kernels32, phantom, for_adjoint=True)
+    grad_u, grad_z = kernels32.adjoint(display_vjp(rendering, weight * (rendering.display - target)))
+    assert np.isfinite(grad_u).all() and np.isfinite(grad_z).all()
+    log_energy = np.log(phantom.energy_pct)
+    for name, grad, step in (("z", grad_z, 2e-5), ("u", grad_u, 1e-5)):
+        for j in rng.choice(np.argsort(-np.abs(grad))[:100], 3, replace=False):
+            losses = []
+            for sign in (1, -1):
+                z_um, energy_pct = phantom.z_um.copy(), phantom.energy_pct.copy()
+                if name == "z":
+                    z_um[j] += sign * step
+                else:
+                    energy_pct[j] = np.exp(log_energy[j] + sign * step)
+                shifted = Phantom(phantom.x_um, phantom.y_um, z_um, energy_pct)
+                losses.append(smooth_loss(render(shifted, NARROW, backend="numpy"), target, weight))
+            finite_difference = (losses[0] - losses[1]) / (2 * step)
+            assert abs(grad[j] - finite_difference) <= 1e-3 * abs(finite_difference), (
+                f"∂L/∂{name}[{j}]: adjoint {grad[j]:.6e}, finite difference {finite_difference:.6e}")
+
+
+# ------------------------------------------------------------------ variants
+def test_variants_agree_and_repeat_bit_for_bit():
+    """Both variants give the same A-scans and gradients to float32 rounding; each repeats exactly."""
+    phantom = random_phantom(3000, np.random.default_rng(16), energy=(1.0, 40.0))
+    results = {}
+    for variant in VARIANTS:
+        kernels = ScannerKernels(NARROW, KernelSettings(variant=variant))
+        runs = []
+        for _ in range(2):
+            rendering = kernel_rendering(kernels, phantom, for_adjoint=True)
+            runs.append((rendering.a_scans, *kernels.adjoint(display_vjp(rendering, rendering.display - 0.5))))
+        for first, second in zip(*runs):
+            np.testing.assert_array_equal(first, second)
+        results[variant] = runs[0]
+    (a_item, u_item, z_item), (a_group, u_group, z_group) = results.values()
+    assert np.abs(a_item - a_group).max() <= 1e-5 * np.abs(a_item).max()
+    for item, group in ((u_item, u_group), (z_item, z_group)):
+        assert np.abs(item - group).max() <= 1e-4 * np.abs(item).max()
+
+
+def test_variant_follows_the_device_type(kernels32):
+    """'auto' takes the work-item variant on a CPU device; a GPU would get the work-group one."""
+    import pyopencl as cl
+
+    from octcl._scanner_op import sort_device_for
+
+    automatic = ScannerKernels(NARROW)
+    assert automatic.device.type & cl.device_type.CPU and automatic.variant == "work-item"
+    assert kernels32.work_group_size <= automatic.device.max_work_group_size
+    # The depth order, a single work-item, never runs on a GPU.
+    assert sort_device_for(automatic.device) == automatic.device
+    assert sort_device_for(_FakeGpu()).type & cl.device_type.CPU
+
+
+class _FakeGpu:
+    """Stands in for a GPU device where only the type is read."""
+
+    @property
+    def type(self):
+        import pyopencl as cl
+
+        return cl.device_type.GPU
+
+    name = "Fake GPU"
+
+
+def test_single_work_item_sort_refuses_a_gpu():
+    from octcl._depth_order import introsort_argsort_opencl
+
+    with pytest.raises(ValueError, match="CPU devices only"):
+        introsort_argsort_opencl(np.array([3, 1, 1, 2] * 10), device=_FakeGpu())
+
+
+def test_variant_is_validated():
+    with pytest.raises(ValueError, match="variant"):
+        KernelSettings(variant="warp")
+
+
+# ---------------------------------------------------------- contribution windows
+def test_contribution_ranges_follow_the_reference_window_test():
+    """The host's window ends are exactly the A-scans the reference's own float64 test admits."""
+    from octcl._scanner_op import contribution_ranges
+
+    config = ScannerConfig()
+    rng = np.random.default_rng(17)
+    pitch, w0 = config.lateral_pitch_um, config.beam_radius_um
+    edge = np.sqrt(3) * w0  # scatterers exactly on or next to the window's edge
+    x_um = np.concatenate([rng.uniform(-1536, 1536, 20_000), np.array([-1536.0, 1536.0, 0.0]),
+                           (rng.integers(-256, 256, 2000) * pitch + edge * rng.choice([-1, 1], 2000))
+                           * (1 + rng.choice([-1e-16, 0, 1e-16], 2000))])
+    y_um = np.concatenate([rng.uniform(-10, 10, 20_000), np.array([0.0, 0.0, 10.0]), np.zeros(2000)])
+    ranges = contribution_ranges(x_um, y_um, config)
+    ascan_x_um = ref.ascan_positions_um(config)
+    inside = ref.in_contribution_window(ascan_x_um[None, :] - x_um[:, None], y_um[:, None], w0)
+    first = np.where(inside.any(axis=1), inside.argmax(axis=1), 1)
+    last = np.where(inside.any(axis=1), config.a_scans - 1 - inside[:, ::-1].argmax(axis=1), 0)
+    np.testing.assert_array_equal(ranges, np.stack([first, last], axis=1))

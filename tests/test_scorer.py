@@ -82,12 +82,12 @@ def test_msssim_input_truncation():
     assert truncated[25] == 24 and truncated[255] == 255 and truncated[0] == 0
 
 
-def test_score_maps_reproduces_official_values(shared_data, lpips_weights, official_uniform_metrics):
+def test_score_maps_reproduces_official_values(official_data, lpips_weights, official_uniform_metrics):
     """Official map PNG levels of Uniform_A against Uniform_B: all 8 components."""
     suffixes = {"Struct": "", "OAC": "_OAC", "SC": "_SC", "RSC": "_RSC"}
 
     def levels(scan):
-        return {name: read_png_rgb(shared_data / "official" / f"Scan_{scan}{suffix}.png")[..., 0]
+        return {name: read_png_rgb(official_data / f"Scan_{scan}{suffix}.png")[..., 0]
                 for name, suffix in suffixes.items()}
 
     components = score_maps(levels("Exp1_Uniform_A"), levels("Exp1_Uniform_B"))
@@ -96,26 +96,24 @@ def test_score_maps_reproduces_official_values(shared_data, lpips_weights, offic
         _assert_official(components, official_uniform_metrics, name)
 
 
-def test_score_reproduces_official_values(shared_data, lpips_weights, official_uniform_metrics):
+def test_score_reproduces_official_values(official_data, lpips_weights, official_uniform_metrics):
     """From the scans alone (maps computed by octcl.maps), all 8 components and their mean."""
-    official = shared_data / "official"
-    result = score(official / UNIFORM_A, official / UNIFORM_B)
+    result = score(official_data / UNIFORM_A, official_data / UNIFORM_B)
     assert tuple(result) == COMPONENTS + ("mean",)
     for name in MAP_NAMES:
         _assert_official(result, official_uniform_metrics, name)
     assert result["mean"] == pytest.approx(np.mean([result[c] for c in COMPONENTS]), abs=1e-15)
 
 
-def test_score_directories_and_csv(shared_data, lpips_weights, official_uniform_metrics, tmp_path):
-    official = shared_data / "official"
+def test_score_directories_and_csv(official_data, lpips_weights, official_uniform_metrics, tmp_path):
     ref_dir, pred_dir = tmp_path / "ref", tmp_path / "pred"
     ref_dir.mkdir()
     pred_dir.mkdir()
     for name in (UNIFORM_A, LAYERS_A, "Scan_Exp1_Uniform_A_OAC.png", "Scan_Exp1_Uniform_A_SC.png",
                  "Scan_Exp1_Uniform_A_RSC.png"):
-        shutil.copy(official / name, ref_dir / name)
-    shutil.copy(official / UNIFORM_B, pred_dir / UNIFORM_A)
-    shutil.copy(official / LAYERS_A, pred_dir / LAYERS_A)
+        shutil.copy(official_data / name, ref_dir / name)
+    shutil.copy(official_data / UNIFORM_B, pred_dir / UNIFORM_A)
+    shutil.copy(official_data / LAYERS_A, pred_dir / LAYERS_A)
     calls = []
 
     result = score_directories(ref_dir, pred_dir, progress=lambda *call: calls.append(call))
@@ -139,14 +137,14 @@ def test_score_directories_and_csv(shared_data, lpips_weights, official_uniform_
     assert float(rows[2]["mean"]) == result["score"]
 
 
-def test_score_directories_names_missing_predictions(shared_data, tmp_path):
+def test_score_directories_names_missing_predictions(official_data, tmp_path):
     ref_dir, pred_dir = tmp_path / "ref", tmp_path / "pred"
     ref_dir.mkdir()
     pred_dir.mkdir()
     with pytest.raises(FileNotFoundError, match="no reference scans"):
         score_directories(ref_dir, pred_dir)
-    shutil.copy(shared_data / "official" / UNIFORM_A, ref_dir / UNIFORM_A)
-    shutil.copy(shared_data / "official" / LAYERS_A, ref_dir / LAYERS_A)
-    shutil.copy(shared_data / "official" / LAYERS_A, pred_dir / LAYERS_A)
+    shutil.copy(official_data / UNIFORM_A, ref_dir / UNIFORM_A)
+    shutil.copy(official_data / LAYERS_A, ref_dir / LAYERS_A)
+    shutil.copy(official_data / LAYERS_A, pred_dir / LAYERS_A)
     with pytest.raises(FileNotFoundError, match=f"no prediction for {UNIFORM_A}$"):
         score_directories(ref_dir, pred_dir)

@@ -50,23 +50,27 @@ def _png(image) -> bytes:
     return buffer.getvalue()
 
 
-def comparison_panel(target_levels: np.ndarray, render_levels: np.ndarray, title: str) -> bytes:
+def comparison_panel(target: np.ndarray, render_levels: np.ndarray, title: str) -> bytes:
     """PNG of the target (top row) and the rendering (bottom row), each as scan, OAC, SC and RSC.
 
-    Full resolution, one pixel per scan pixel, so speckle can be compared;
-    the maps are the official processor's (:func:`octcl.maps.map_levels`).
+    ``target`` is in either form of :mod:`octcl.host.target`, ``render_levels``
+    the rendering's (Nz, Nx) levels. Full resolution, one pixel per scan
+    pixel, so speckle can be compared; the maps are the official
+    processor's (:func:`octcl.maps.map_levels`) of the scan the task
+    contract reads.
     """
     from PIL import Image, ImageDraw
 
     from octcl.maps import map_levels
 
-    from ..loss import scan_of_levels
+    from ..target import target_scan
 
     rows = []
-    for levels in (target_levels, render_levels):
-        maps = map_levels(scan_of_levels(levels))
-        rows.append([levels, maps["OAC"], maps["SC"], maps["RSC"]])
-    height, width = target_levels.shape
+    for image in (target, render_levels):
+        scan = target_scan(image)
+        maps = map_levels(scan)
+        rows.append([np.rint(scan * 255).astype(np.uint8), maps["OAC"], maps["SC"], maps["RSC"]])
+    height, width = render_levels.shape
     label = 16
     image = Image.new("L", (4 * width, 2 * (height + label) + label), 255)
     draw = ImageDraw.Draw(image)

@@ -1,8 +1,9 @@
 """One scan of a batch, as a Dask worker runs it: target bytes in, phantom and report bytes out.
 
 Nothing here touches the client's files: the target arrives as the file's
-bytes, is decoded and checked here (:func:`octcl._io.decode_scan_levels`,
-:func:`octcl.host.invert.read_target`), inverted into the worker's own
+bytes, is decoded and checked here (:func:`octcl.host.target.decode_target`,
+which reads the bytes as :func:`octcl.host.target.read_target` reads the
+file, so a scan inverts the same in a batch as on its own), inverted into the worker's own
 scratch folder, and the phantom, its report and two pictures go back to the
 client, which writes them. So workers need octcl and nothing else: no shared
 file system.
@@ -16,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from octcl._io import ImageFormatError, decode_scan_levels
+from octcl._io import ImageFormatError
 from octcl.config import DEFAULT_CONFIG
 
 
@@ -47,7 +48,8 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     -------
     dict
         ``name``; for a target that is not a usable B-scan only ``error``,
-        its one-line reason (no retry can change that); else ``phantom``
+        its one-line reason (no retry can change that; likewise a fixed
+        schedule that does not fit in the time budget); else ``phantom``
         (the file's bytes), ``report`` (invert's report, ``target`` set to
         ``name``), ``panel`` and ``plot`` (PNG bytes,
         :func:`octcl.host.batch.report.comparison_panel` and
@@ -68,20 +70,23 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     from octcl.render import render
 
     from ..field import _available_cores
-    from ..invert import invert, read_target
+    from ..invert import TimeBudgetExceeded, invert
+    from ..target import decode_target
     from .report import comparison_panel, score_plot
 
     started, cpu_started = time.monotonic(), time.process_time()
     config = options.get("config", DEFAULT_CONFIG)
     try:
-        levels = decode_scan_levels(data, config.shape, name)
-        read_target(levels, config, source=name)
+        target = decode_target(data, config, name)
     except ImageFormatError as exc:
         return {"name": name, "error": str(exc)}
     torch.set_num_threads(_available_cores())
     with tempfile.TemporaryDirectory(prefix="octcl-scan-", dir=_scratch_folder()) as scratch:
         phantom_path, report_path = Path(scratch) / "phantom.txt", Path(scratch) / "report.json"
-        result = invert(levels, phantom_path, time_budget_s, seed, report_path, **options)
+        try:
+            result = invert(target, phantom_path, time_budget_s, seed, report_path, name=name, **options)
+        except TimeBudgetExceeded as exc:
+            return {"name": name, "error": str(exc)}
         cpu_s = time.process_time() - cpu_started
         phantom = phantom_path.read_bytes()
         report = json.loads(report_path.read_text())
@@ -89,7 +94,7 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     report["target"] = name
     title = f"{name}: score {result.score:.5f} after {result.seconds['total']:.0f} s"
     return {"name": name, "phantom": phantom, "report": report,
-            "panel": comparison_panel(levels, rendering.levels, title),
+            "panel": comparison_panel(target, rendering.levels, title),
             "plot": score_plot({name: report["trace"]}, name),
             "cpu_s": cpu_s, "wall_s": time.monotonic() - started, "worker": f"{os.uname().nodename}:{os.getpid()}"}
 

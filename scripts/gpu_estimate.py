@@ -1,0 +1,134 @@
+#!/usr/bin/env python
+"""On paper: render and gradient time of the work-group kernels on GPUs, from counted work.
+
+An estimate, not a measurement. For each benchmark scene it counts what one
+forward render and one adjoint do in the work-group variant
+(``kernels/scanner.cl``), from the scanner's own layout:
+
+- pairs: (A-scan, candidate) pairs visited, P·(list entries), each one
+  beam weight (1 exp), shadow energy and a double-word product step
+  (≈ 30 flops), and a step of the work-group scan;
+- taps: W spreading taps per pair inside the contribution window, each
+  a sqrt and an exp (2 special-function ops) and ≈ 12 flops to spread
+  (forward) or gather two grids (adjoint, counted twice);
+- FFTs: 5·G·log2 G flops per complex G-point FFT, one per A-scan forward
+  (G = 2·Nz), three in the adjoint;
+- bytes: each list's Entry records come from memory once per pass (the P
+  work-groups of a bin read the same list, a few MB at most, from L2);
+  forward writes one complex slot per pair and reads it back to gather,
+  the adjoint reads it, writes the pair's gradient and the reduction reads
+  that again.
+
+Time per pass = max(bytes / memory bandwidth, flops / FP32 rate,
+special ops / special-function rate, latency): a roofline over the whole
+GPU (512 work-groups of 128 work-items against 132 SMs or 104 CUs, all
+resident at the compiler-reported occupancy), with a latency floor: the
+longest list's ⌈L/128⌉ chunks one after another, at an assumed
+CHUNK_CYCLES each (not measured: no GPU was at hand). What a run on a GPU
+would confirm or refute: that latency figure (the scans' barriers and the
+waits on global loads), the load imbalance between short and long lists,
+kernel launch latency (~5–10 µs each, 3–4 kernels a call),
+and the host: the layout (depth order on a CPU device, bins, uploads:
+measured on this machine, printed below) and PCIe transfers (z, E in;
+A-scans and gradients out).
+
+Peak rates are the vendors' datasheet figures (boost clock):
+
+- NVIDIA H100 SXM5 80 GB: 3.35 TB/s HBM3, 66.9 TFLOP/s FP32 (non-tensor),
+  132 SMs × 16 special-function results per clock × 1.98 GHz;
+- AMD Instinct MI250, one of its two GCDs (OpenCL shows each as a device):
+  1.64 TB/s HBM2e, 22.6 TFLOP/s FP32 vector, 104 CUs × 16 transcendental
+  results per clock (quarter rate) × 1.7 GHz.
+
+    python scripts/gpu_estimate.py
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from octcl._scanner_op import KernelSettings, ScannerKernels, contribution_ranges
+from octcl.phantom import Phantom
+
+GPUS = {
+    "NVIDIA H100 SXM5": {"bandwidth": 3.35e12, "flops": 66.9e12, "special": 132 * 16 * 1.98e9, "pcie": 25e9,
+                         "clock": 1.98e9},
+    "AMD MI250 (one GCD)": {"bandwidth": 1.64e12, "flops": 22.6e12, "special": 104 * 16 * 1.7e9, "pcie": 25e9,
+                            "clock": 1.7e9},
+}
+SCENES = {"layers_A": lambda: Phantom.baseline("layers", 42), "skin_1": lambda: Phantom.skin(1)}
+FLOPS_PER_PAIR = 30
+SPECIAL_PER_PAIR = 1
+FLOPS_PER_TAP = 12
+SPECIAL_PER_TAP = 2
+#: Assumed cycles per chunk of WG_SIZE list entries: the forward pass's
+#: product scan (7 steps, each a local-memory round trip and a barrier, twice
+#: for the double word), a global load that the group must wait for, and the
+#: taps; the adjoint adds the affine suffix scan and the second grid.
+CHUNK_CYCLES = {"forward": 2000, "adjoint": 3000}
+
+
+def count(phantom: Phantom, kernels: ScannerKernels) -> dict:
+    config = kernels.config
+    log_energy = np.log(phantom.energy_pct)
+    kernels.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
+    # The layout as refinement sees it: x, y unchanged, depths moved a little.
+    moved_z_um = phantom.z_um + np.random.default_rng(0).normal(0, 0.05, phantom.z_um.size)
+    start = time.perf_counter()
+    kernels.set_phantom(phantom.x_um, phantom.y_um, moved_z_um, log_energy)
+    layout_s = time.perf_counter() - start
+    start = time.perf_counter()
+    kernels._depth_order(phantom.z_um)
+    depth_order_s = time.perf_counter() - start
+    kernels.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, log_energy)
+    list_lengths = np.diff(kernels._lateral.list_start)
+    pairs = kernels.ascans_per_bin * kernels.entries
+    window = contribution_ranges(phantom.x_um, phantom.y_um, config)
+    contributing = int(np.sum(np.maximum(window[:, 1] - window[:, 0] + 1, 0)))
+    taps = contributing * kernels.settings.spread_width
+    grid, nx = kernels.grid, config.a_scans
+    fft = 5 * grid * math.log2(grid)
+    complex_bytes, entry_bytes = 8, kernels.entry_bytes
+    forward = {"flops": pairs * FLOPS_PER_PAIR + taps * FLOPS_PER_TAP + nx * fft,
+               "special": pairs * SPECIAL_PER_PAIR + taps * SPECIAL_PER_TAP,
+               "bytes": kernels.entries * entry_bytes + pairs * complex_bytes * 2 + nx * config.depth_pixels * complex_bytes}
+    adjoint = {"flops": pairs * FLOPS_PER_PAIR + 2 * taps * FLOPS_PER_TAP + 3 * nx * fft,
+               "special": pairs * SPECIAL_PER_PAIR + taps * SPECIAL_PER_TAP,
+               "bytes": kernels.entries * entry_bytes + pairs * complex_bytes * 3 + 3 * phantom.x_um.size * 8}
+    transfer_bytes = {"forward": 3 * 4 * phantom.x_um.size + nx * config.depth_pixels * complex_bytes,
+                      "adjoint": nx * config.depth_pixels * complex_bytes + phantom.x_um.size * complex_bytes}
+    return {"pairs": pairs, "taps": taps, "layout_s": layout_s, "depth_order_s": depth_order_s,
+            "chunks": int(math.ceil(list_lengths.max() / kernels.work_group_size)), "forward": forward, "adjoint": adjoint,
+            "transfer_bytes": transfer_bytes, "entries": kernels.entries}
+
+
+def roofline(work: dict, gpu: dict, chunks: int, chunk_cycles: int) -> tuple[float, str]:
+    times = {"memory": work["bytes"] / gpu["bandwidth"], "FP32": work["flops"] / gpu["flops"],
+             "special functions": work["special"] / gpu["special"],
+             "latency": chunks * chunk_cycles / gpu["clock"]}
+    bound = max(times, key=times.get)
+    return times[bound], bound
+
+
+def main() -> None:
+    kernels = ScannerKernels(settings=KernelSettings(variant="work-group"))
+    for name, make in SCENES.items():
+        counted = count(make(), kernels)
+        print(f"{name}: {counted['entries']:,} list entries, {counted['pairs']:,} pairs, {counted['taps']:,} taps, "
+              f"{counted['chunks']} chunks in the longest list; host layout per refinement step on this machine "
+              f"{1000 * counted['layout_s']:.0f} ms, of which the depth order (on the CPU device, from the last "
+              f"order) {1000 * counted['depth_order_s']:.0f} ms")
+        for gpu_name, gpu in GPUS.items():
+            cells = []
+            for stage in ("forward", "adjoint"):
+                seconds, bound = roofline(counted[stage], gpu, counted["chunks"], CHUNK_CYCLES[stage])
+                transfer = counted["transfer_bytes"][stage] / gpu["pcie"]
+                cells.append(f"{stage} {1000 * seconds:.2f} ms ({bound}-bound) + PCIe {1000 * transfer:.2f} ms")
+            print(f"  {gpu_name}: " + "; ".join(cells))
+
+
+if __name__ == "__main__":
+    main()

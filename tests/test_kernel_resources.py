@@ -1,0 +1,145 @@
+"""scripts/kernel_resources.py: offline GPU builds of every kernel and their resource reports."""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from octcl._runtime import build_options
+from octcl._scanner_op import WORK_GROUP_SIZE, KernelSettings, program_defines
+from octcl.config import DEFAULT_CONFIG
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "scripts" / "kernel_resources.py"
+
+_spec = importlib.util.spec_from_file_location("kernel_resources", SCRIPT)
+kr = sys.modules.setdefault("kernel_resources", importlib.util.module_from_spec(_spec))
+_spec.loader.exec_module(kr)
+
+
+def run_script(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=REPO)
+
+
+@pytest.fixture(scope="module")
+def compilers():
+    """Skips when clang-14 / libclc are missing (scripts/check_kernels.sh installs them in CI)."""
+    try:
+        return kr.find_tools(os.environ.get("CLANG", "clang-14"),
+                             Path(os.environ.get("LIBCLC_DIR", "/usr/lib/clc")), os.environ.get("PTXAS", "ptxas"))
+    except kr.ToolMissingError as exc:
+        pytest.skip(f"no offline GPU compiler: {exc}")
+
+
+def test_builds_are_octcls_builds_for_every_knob_and_precision():
+    builds = kr.enumerate_builds(REPO / "kernels", {"spread_width": (8, 16, 8)})
+    scanner = {(b.precision, b.knobs): b.options for b in builds if b.file == "scanner"}
+    for width in (8, 16):
+        defines = program_defines(DEFAULT_CONFIG, KernelSettings(spread_width=width))
+        for precision in ("float32", "float64"):
+            assert scanner[(precision, (("spread_width", width),))] == tuple(
+                build_options(defines, double=precision == "float64"))
+    assert len(scanner) == 4  # the repeated 8 is built once
+    # The depth order does not depend on the knobs: one integer build, no knob reported.
+    assert [(b.precision, b.knobs, b.options) for b in builds if b.file == "depth_order"] == [("integer", (), ())]
+
+
+def test_an_unregistered_kernel_file_fails_the_run(tmp_path):
+    (tmp_path / "depth_order.cl").write_text((REPO / "kernels" / "depth_order.cl").read_text())
+    (tmp_path / "scanner_tiles.cl").write_text("__kernel void k(__global int *a) { a[0] = 1; }\n")
+    with pytest.raises(kr.RegistryError, match="scanner_tiles.cl: no build registered"):
+        kr.enumerate_builds(tmp_path, kr.KNOBS)
+    result = run_script("--kernel-dir", str(tmp_path))
+    assert result.returncode == 2
+    assert "KERNEL_FILES" in result.stderr
+
+
+def test_only_libclcs_own_triple_warning_is_ignored():
+    libclc = ("warning: linking module '/usr/lib/clc/amdgcn--amdhsa.bc': Linking two modules of different "
+              "target triples: '/usr/lib/clc/amdgcn--amdhsa.bc' is 'amdgcn-unknown-amdhsa' whereas "
+              "'kernels/scanner.cl' is '{ours}'\n [-Wlinker-warnings]\n1 warning generated.\n")
+    assert kr._unexpected_diagnostics(libclc.format(ours="amdgcn-amd-amdhsa")) == ""
+    assert "different target triples" in kr._unexpected_diagnostics(libclc.format(ours="nvptx64-nvidia-nvcl"))
+    other = "kernels/scanner.cl:3:5: warning: unused variable 'x' [-Wunused-variable]\n"
+    assert kr._unexpected_diagnostics(libclc.format(ours="amdgcn-amd-amdhsa") + other) == other.strip()
+
+
+@pytest.mark.parametrize("registers, shared_bytes, block_size, warps", [
+    (32, 0, 256, 64),       # 1024 registers a warp: 16 warps per sub-partition, 64 per SM
+    (40, 0, 256, 48),       # 1280 a warp: 12 per sub-partition → 48 warps, 6 blocks of 8
+    (64, 0, 256, 32),       # 2048 a warp: 8 per sub-partition → 32 warps (50 %)
+    (255, 0, 32, 8),        # 8160 → 8192 a warp: 2 per sub-partition
+    (256, 0, 32, 0),        # over 255 registers a thread: no launch
+    (32, 49152, 128, 12),   # (48 KiB + 1 KiB reserved) per block: 3 blocks in 164 KiB
+    (16, 0, 32, 32),        # one-warp blocks stop at 32 blocks per SM
+])
+def test_nvidia_occupancy_follows_the_cuda_occupancy_rules(registers, shared_bytes, block_size, warps):
+    assert kr.nvidia_occupancy(registers, shared_bytes, block_size) == warps
+
+
+def test_every_kernel_compiles_and_reports_its_private_arrays(compilers):
+    """Every build for sm_80 (a second or so each) and the depth order for every target."""
+    nvidia = run_script("--json", "--targets", "sm_80")
+    amd = run_script("--json", "--kernels", "depth_order", "--targets", "gfx906,gfx90a")
+    for result in (nvidia, amd):
+        assert result.returncode == 0, result.stderr
+    records = [json.loads(line) for line in (nvidia.stdout + amd.stdout).splitlines()]
+    for record in records:
+        assert {"kernel", "target", "precision", "private_bytes", "registers", "occupancy"} <= record.keys()
+        assert record["registers"] is None or 0 < record["occupancy"] <= record["occupancy_max"]
+    found = {(r["kernel"], r["target"], r["precision"], r["spread_width"]): r for r in records}
+    assert {key[:3] for key in found} >= {("introsort_argsort", t, "integer") for t in ("gfx906", "gfx90a", "sm_80")}
+    # The sort keeps three stacks of 32 pending ints in private memory.
+    for target in ("gfx906", "gfx90a", "sm_80"):
+        assert found[("introsort_argsort", target, "integer", None)]["private_bytes"] >= 3 * 32 * 4
+    # One private grid of 2·Nz complex values forwards, two in the adjoint.
+    grid = 2 * DEFAULT_CONFIG.depth_pixels
+    for precision, complex_bytes in (("float32", 8), ("float64", 16)):
+        for width in kr.KNOBS["spread_width"]:
+            assert found[("render_forward", "sm_80", precision, width)]["private_bytes"] >= grid * complex_bytes
+            assert found[("render_adjoint", "sm_80", precision, width)]["private_bytes"] >= 2 * grid * complex_bytes
+            assert found[("reduce_slots", "sm_80", precision, width)]["private_bytes"] == 0
+            # The work-group variant keeps its grids in local memory: nothing
+            # private, the grid (and the adjoint's second grid) in shared memory,
+            # and blocks of the kernel's required work-group size.
+            for kernel, grids in (("render_forward_group", 1), ("render_adjoint_group", 2)):
+                record = found[(kernel, "sm_80", precision, width)]
+                assert record["private_bytes"] == 0
+                assert record["shared_bytes"] >= grids * grid * complex_bytes
+                assert record["block_size"] == WORK_GROUP_SIZE
+
+
+BROKEN_KERNELS = {
+    "syntax": ("__kernel void introsort_argsort(__global long *key) { key[0] = 1 }\n", "error: expected ';'"),
+    "undefined function": ("long helper(long x);\n"
+                           "__kernel void introsort_argsort(__global long *key) { key[0] = helper(key[1]); }\n",
+                           "helper"),
+}
+
+
+@pytest.mark.parametrize("target", ["gfx906", "sm_80"])
+@pytest.mark.parametrize("problem", sorted(BROKEN_KERNELS))
+def test_a_broken_kernel_fails_the_run_with_the_compilers_message(compilers, tmp_path, target, problem):
+    source, message = BROKEN_KERNELS[problem]
+    (tmp_path / "depth_order.cl").write_text(source)
+    result = run_script("--kernel-dir", str(tmp_path), "--targets", target)
+    assert result.returncode == 1
+    assert f"FAILED kernels/depth_order.cl integer for {target}" in result.stderr
+    assert message in result.stderr
+
+
+def test_without_ptxas_the_ptx_gives_private_bytes_and_catches_undefined_functions(compilers, tmp_path):
+    result = run_script("--json", "--kernels", "depth_order", "--targets", "sm_80", "--ptxas", "")
+    assert result.returncode == 0, result.stderr
+    (record,) = [json.loads(line) for line in result.stdout.splitlines()]
+    assert record["private_bytes"] >= 3 * 32 * 4
+    assert record["registers"] is None and record["occupancy"] is None
+    assert "no ptxas" in record["reported_by"]
+    (tmp_path / "depth_order.cl").write_text(BROKEN_KERNELS["undefined function"][0])
+    result = run_script("--kernel-dir", str(tmp_path), "--targets", "sm_80", "--ptxas", "")
+    assert result.returncode == 1
+    assert "undefined functions helper" in result.stderr
