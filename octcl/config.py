@@ -99,6 +99,8 @@ class ScannerConfig:
             raise ConfigError(f"{path}: no such file") from None
         except IsADirectoryError:
             raise ConfigError(f"{path}: is a directory, not a Configuration.ini file") from None
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
         except UnicodeDecodeError as exc:
             raise ConfigError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from None
         except configparser.Error as exc:

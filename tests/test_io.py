@@ -3,13 +3,16 @@
 import io
 import os
 import re
+import struct
+import zlib
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from octcl._io import (GREY_LUT, ImageFormatError, atomic_write, check_scan_levels, decode_scan_levels,
-                       read_png_rgb, read_scan, write_grey_png)
+from octcl._io import (GREY_LUT, MAX_IMAGE_FILE_BYTES, MAX_IMAGE_PIXELS, PNG_SIGNATURE, ImageFormatError,
+                       OutputError, _png_chunk, atomic_write, check_scan_levels, decode_scan_levels,
+                       read_image_bytes, read_png_pixels, read_png_rgb, read_scan, write_grey_png)
 
 SHAPE = (256, 512)
 
@@ -174,3 +177,65 @@ def test_colour_png_is_refused_as_levels(tmp_path):
         decode_scan_levels(data, SHAPE, "colour.png")
     with pytest.raises(ImageFormatError, match=r"c\.png: image is 200x512"):
         decode_scan_levels(save(tmp_path / "c.png", np.zeros((200, 512), np.uint8)).read_bytes(), SHAPE, "c.png")
+
+
+def png_claiming(width: int, height: int) -> bytes:
+    """A PNG whose header claims ``height`` x ``width`` 8-bit grey pixels and which holds none."""
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return PNG_SIGNATURE + _png_chunk(b"IHDR", header) + _png_chunk(b"IDAT", zlib.compress(b"")) \
+        + _png_chunk(b"IEND", b"")
+
+
+@pytest.mark.parametrize("width, height", [(100_000, 100_000), (4097, 4096), (2**31 - 1, 2**31 - 1), (0, 256)])
+def test_png_size_is_refused_by_its_header_before_decoding(tmp_path, width, height):
+    """Every PNG reader, asked for a shape or not, refuses a claimed size it would not read, before Pillow sees it
+    (Pillow would decode 89 million pixels before its own DecompressionBombError)."""
+    from octcl.scorer import _read_map_for_metrics
+
+    path = tmp_path / "bomb.png"
+    path.write_bytes(png_claiming(width, height))
+    expected = re.escape(f"bomb.png: image is {height}x{width} (rows x columns); octcl reads images of 1 to "
+                         f"{MAX_IMAGE_PIXELS:,} pixels")
+    for reader in (read_png_pixels, read_scan, _read_map_for_metrics):
+        with pytest.raises(ImageFormatError, match=expected):
+            reader(path)
+    with pytest.raises(ImageFormatError, match=r"bomb\.png: image is \d+x\d+ \(rows x columns\), expected 256x512"):
+        decode_scan_levels(path.read_bytes(), SHAPE, "bomb.png")
+
+
+def test_largest_claimed_png_that_is_read(tmp_path):
+    path = tmp_path / "tall.png"
+    path.write_bytes(png_claiming(1, MAX_IMAGE_PIXELS))
+    with pytest.raises(ImageFormatError, match=r"tall\.png: truncated or corrupt PNG"):  # read, found empty
+        read_png_pixels(path)
+
+
+def test_image_file_larger_than_the_limit_is_refused_unread(tmp_path):
+    path = tmp_path / "large.png"
+    with open(path, "wb") as handle:  # sparse: no disk used
+        handle.write(png_claiming(512, 256))
+        handle.truncate(MAX_IMAGE_FILE_BYTES + 1)
+    message = rf"large\.png: {MAX_IMAGE_FILE_BYTES + 1:,} bytes, more than the {MAX_IMAGE_FILE_BYTES:,} an image"
+    for read in (read_image_bytes, read_scan):
+        with pytest.raises(ImageFormatError, match=message):
+            read(path)
+    with pytest.raises(ImageFormatError, match=r"is a directory, not a PNG file"):
+        read_scan(tmp_path)
+
+
+def test_output_that_is_a_directory_or_beyond_a_file_is_refused(tmp_path):
+    (tmp_path / "file").write_text("old")
+    with pytest.raises(OutputError, match=rf"^{re.escape(str(tmp_path))}: is a directory; give a file name$"):
+        with atomic_write(tmp_path):
+            pass
+    with pytest.raises(OutputError, match=rf"cannot make its folder: {re.escape(str(tmp_path / 'file'))} is a file"):
+        write_grey_png(tmp_path / "file" / "sub" / "x.png", np.zeros(SHAPE, np.uint8))
+    assert sorted(os.listdir(tmp_path)) == ["file"] and (tmp_path / "file").read_text() == "old"
+
+
+def test_atomic_write_passes_on_errors_about_other_files(tmp_path):
+    """An OSError of the caller about another file is the caller's, not an output error."""
+    with pytest.raises(FileNotFoundError) as caught:
+        with atomic_write(tmp_path / "out.txt") as handle:
+            handle.write((tmp_path / "missing.txt").read_bytes())
+    assert not isinstance(caught.value, OutputError) and os.listdir(tmp_path) == []
