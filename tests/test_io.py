@@ -239,3 +239,64 @@ def test_atomic_write_passes_on_errors_about_other_files(tmp_path):
         with atomic_write(tmp_path / "out.txt") as handle:
             handle.write((tmp_path / "missing.txt").read_bytes())
     assert not isinstance(caught.value, OutputError) and os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+def test_outputs_get_the_mode_open_gives(tmp_path, umask):
+    """Every writer's file has the permissions open() gives a new file under the umask, also when it replaces
+    a file with other permissions."""
+    from octcl.phantom import Phantom
+
+    previous = os.umask(umask)
+    try:
+        with open(tmp_path / "by_open", "w"):
+            pass
+        (tmp_path / "old.txt").write_text("old")
+        os.chmod(tmp_path / "old.txt", 0o600)
+        with atomic_write(tmp_path / "old.txt") as handle:
+            handle.write(b"new")
+        write_grey_png(tmp_path / "scan.png", np.zeros(SHAPE, np.uint8))
+        Phantom([0.0], [0.0], [1.0], [1.0]).save(tmp_path / "folder" / "phantom.txt")
+    finally:
+        os.umask(previous)
+    expected = 0o666 & ~umask
+    assert os.stat(tmp_path / "by_open").st_mode & 0o777 == expected
+    for name in ("old.txt", "scan.png", "folder/phantom.txt"):
+        assert os.stat(tmp_path / name).st_mode & 0o777 == expected, name
+
+
+def temporaries(folder) -> list[str]:
+    return sorted(name for name in os.listdir(folder) if name.endswith(".tmp"))
+
+
+def test_killed_writer_leaves_a_hidden_temporary_that_a_later_write_removes_once_stale(tmp_path):
+    """SIGKILL in the middle of a write: the output is untouched; the temporary file it leaves is removed by the
+    next write to the same output once older than STALE_TEMPORARY_AGE_S, and kept while younger (it could be a
+    live writer's)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from octcl._io import STALE_TEMPORARY_AGE_S
+
+    out = tmp_path / "out.txt"
+    out.write_text("earlier")
+    killed = ("import os, signal, sys\nfrom octcl._io import atomic_write\n"
+              "with atomic_write(sys.argv[1]) as handle:\n"
+              "    handle.write(b'half a file'); handle.flush(); os.kill(os.getpid(), signal.SIGKILL)\n")
+    for _ in range(2):
+        result = subprocess.run([sys.executable, "-c", killed, str(out)], timeout=60)
+        assert result.returncode == -signal.SIGKILL
+    left = temporaries(tmp_path)
+    assert len(left) == 2 and all(re.fullmatch(r"\.out\.txt\.[0-9a-f]{16}\.tmp", name) for name in left)
+    assert out.read_text() == "earlier"
+    other = tmp_path / ".other.txt.0123456789abcdef.tmp"  # another output's: never touched here
+    other.write_text("x")
+    stale = time.time() - STALE_TEMPORARY_AGE_S - 60
+    for name in (left[0], other.name):
+        os.utime(tmp_path / name, (stale, stale))
+    with atomic_write(out) as handle:
+        handle.write(b"new")
+    assert out.read_text() == "new"
+    assert temporaries(tmp_path) == sorted([left[1], other.name])
