@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import os
 import secrets
 import struct
@@ -378,21 +379,30 @@ def _decode_npy(data: bytes, source: str) -> np.ndarray:
         version = np.lib.format.read_magic(stream)
         header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
         array_shape, fortran_order, dtype = header(stream)
-    except ValueError as exc:
-        raise ImageFormatError(f"{source}: corrupt .npy header ({exc})") from None
+    except Exception as exc:  # noqa: BLE001 - NumPy parses the header with ast and tokenize, which raise
+        # ValueError, SyntaxError, TokenError, RecursionError, TypeError...: every one means a corrupt header.
+        reason = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise ImageFormatError(f"{source}: corrupt .npy header ({reason})") from None
     if dtype.hasobject:
         raise ImageFormatError(
             f"{source}: .npy of Python objects (dtype object), not loaded (that would run pickle); "
             f"a B-scan is a 2-D uint8 array of grey levels")
+    if any(length < 0 for length in array_shape):
+        raise ImageFormatError(f"{source}: corrupt .npy header (shape {array_shape})")
+    if dtype.itemsize == 0 or dtype.subdtype is not None or dtype.names is not None:
+        raise ImageFormatError(f"{source}: .npy of dtype {dtype}; a B-scan is a 2-D uint8 array of grey levels")
     stored = len(data) - stream.tell()
-    needed = int(np.prod(array_shape, dtype=np.int64)) * dtype.itemsize
+    count = math.prod(array_shape)  # Python integers: a header's shape may overflow int64
+    needed = count * dtype.itemsize
     if stored < needed:
         raise ImageFormatError(
             f"{source}: truncated .npy file: its header announces a {dtype} array of shape "
             f"{array_shape} ({needed:,} bytes) but {stored:,} bytes follow")
-    array = np.frombuffer(data, dtype=dtype, count=needed // dtype.itemsize if dtype.itemsize else 0,
-                          offset=stream.tell())
-    return array.reshape(array_shape, order="F" if fortran_order else "C")
+    array = np.frombuffer(data, dtype=dtype, count=count, offset=stream.tell())
+    try:
+        return array.reshape(array_shape, order="F" if fortran_order else "C")
+    except ValueError:  # an empty array whose other lengths overflow NumPy's sizes: (0, 2**63 - 1)
+        raise ImageFormatError(f"{source}: .npy of shape {array_shape}, which NumPy cannot hold") from None
 
 
 def decode_scan_levels(data: bytes, shape: tuple[int, int], source: str) -> np.ndarray:

@@ -62,8 +62,17 @@ def _grey_as_official(pixels: np.ndarray) -> np.ndarray:
     return (red * _LUMINANCE[0] + green * _LUMINANCE[1]) + blue * _LUMINANCE[2]
 
 
-def _grey_of_pixels(pixels: np.ndarray) -> np.ndarray:
-    """:func:`_grey_as_official` of a PNG's stored (H, W, C) pixels (:func:`octcl._io.read_png_pixels`)."""
+def _grey_of_pixels(pixels: np.ndarray, source: str = "image") -> np.ndarray:
+    """:func:`_grey_as_official` of a PNG's stored (H, W, C) pixels (:func:`octcl._io.read_png_pixels`).
+
+    Raises :class:`octcl._io.ImageFormatError` starting with ``source`` for
+    grey+alpha, which the official reading does not take.
+    """
+    from ._io import ImageFormatError
+
+    if pixels.shape[2] == 2:
+        raise ImageFormatError(f"{source}: grey+alpha PNG, which the official metric cannot read; "
+                               "save it as 8-bit grey, RGB or RGBA")
     return _grey_as_official(pixels[:, :, 0] if pixels.shape[2] == 1 else pixels)
 
 
@@ -76,7 +85,7 @@ def _read_map_for_metrics(path) -> np.ndarray:
     """
     from ._io import read_png_pixels
 
-    return _grey_of_pixels(read_png_pixels(path))
+    return _grey_of_pixels(read_png_pixels(path), str(path))
 
 
 @functools.lru_cache(maxsize=1)
@@ -159,7 +168,7 @@ def _scan_maps_for_metrics(path) -> dict:
     from ._io import read_png_pixels, rgb_of_pixels, scan_of_rgb
 
     pixels = read_png_pixels(path, shape=SCAN_SHAPE)
-    return _maps_for_metrics(_grey_of_pixels(pixels), scan_of_rgb(rgb_of_pixels(pixels)))
+    return _maps_for_metrics(_grey_of_pixels(pixels, str(path)), scan_of_rgb(rgb_of_pixels(pixels)))
 
 
 def score(ref, pred) -> dict:
