@@ -300,3 +300,43 @@ def test_killed_writer_leaves_a_hidden_temporary_that_a_later_write_removes_once
         handle.write(b"new")
     assert out.read_text() == "new"
     assert temporaries(tmp_path) == sorted([left[1], other.name])
+
+
+_CHECKPOINTING_WRITER = """
+import sys
+from octcl.phantom import Phantom
+path, writer, versions = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
+for version in range(versions):
+    rows = 2000 + 37 * version
+    Phantom([writer] * rows, [0.0] * rows, [float(version)] * rows, [1.0] * rows).save(path)
+"""
+
+
+def test_two_writers_and_a_reader_never_see_a_partial_file(tmp_path):
+    """Two processes save phantoms to one output as fast as they can (two `octcl invert` runs given the same -o,
+    each checkpointing), while this one loads it again and again: every load is a whole phantom one writer
+    saved (its row count and values say which), and no temporary file is left."""
+    import subprocess
+    import sys
+
+    from octcl.phantom import Phantom
+
+    path = tmp_path / "phantom.txt"
+    Phantom([0.0], [0.0], [0.0], [1.0]).save(path)
+    writers = [subprocess.Popen([sys.executable, "-c", _CHECKPOINTING_WRITER, str(path), str(writer), "60"])
+               for writer in (1, 2)]
+    seen = set()
+    try:
+        while any(writer.poll() is None for writer in writers):
+            phantom = Phantom.load(path)
+            writer, version = phantom.x_um[0], phantom.z_um[0]
+            assert (phantom.x_um == writer).all() and (phantom.z_um == version).all()
+            if writer:
+                assert len(phantom) == 2000 + 37 * version
+                seen.add((writer, version))
+    finally:
+        for writer in writers:
+            writer.wait(timeout=120)
+    assert [writer.returncode for writer in writers] == [0, 0]
+    assert len({writer for writer, _ in seen}) == 2 and len(seen) >= 10  # both writers were read, often
+    assert os.listdir(tmp_path) == ["phantom.txt"]
