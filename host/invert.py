@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 
-from octcl._io import atomic_write
+from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 
@@ -355,6 +355,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     ------
     ImageFormatError
         The target is not a usable B-scan (:func:`octcl.host.target.check_target`).
+    OutputError
+        ``output_path`` or ``report_path`` cannot be written (:func:`octcl._io.check_output_path`),
+        checked before the work starts.
     ValueError
         A budget that is not a positive number, iterations beyond the
         schedule, a thread or stage-1 iteration count below 1.
@@ -379,7 +382,10 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         schedule = schedule.truncated(iterations)
         threads = FIXED_THREADS if threads is None else threads
     deadline = started + time_budget_s
-    output_path = Path(output_path)
+    # A bad output path fails now, not after the budget is spent.
+    output_path = check_output_path(output_path)
+    if report_path is not None:
+        check_output_path(report_path)
     if isinstance(target, (str, os.PathLike)):
         name = str(target) if name is None else name
         target = read_target(target, config)

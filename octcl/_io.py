@@ -3,7 +3,22 @@
 Every file octcl writes goes through :func:`atomic_write`: the data lands in a
 temporary file beside the destination and is renamed over it only once it is
 complete, so an interrupted or failed write never loses or corrupts an earlier
-output.
+output, and a reader (another process included) sees either the earlier file
+or the new one, whole. The new file gets the permissions ``open()`` would
+give it (0o666 less the umask). An output that cannot be written (a
+directory, a folder that cannot be made, no permission, a full disk) raises
+:class:`OutputError` naming it.
+
+The temporary file is ``.NAME.<16 hex digits>.tmp``: hidden, with a suffix no
+reader of octcl's takes for an output. A process killed in the middle of a
+write (SIGKILL, a lost machine) leaves it behind; the next write to the same
+destination removes such files once they are older than
+:data:`STALE_TEMPORARY_AGE_S` (an hour). Removing rather than only ignoring
+them keeps repeated killed runs (a batch scheduler's time limit) from filling
+the disk with 17 MB phantoms; the age tells a dead writer's file from a live
+one's without asking which processes run (which a folder shared between
+machines could not answer): a live writer modifies its file with every write
+and finishes within seconds (a 300,000-row phantom takes under 4 s).
 
 PNG reading is strict. A B-scan is an 8-bit grey, grey+alpha, RGB or RGBA
 PNG; anything else (16-bit samples, palettes, truncated or non-PNG files, a
@@ -22,9 +37,11 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import os
+import secrets
 import struct
-import tempfile
+import time
 import zlib
 from pathlib import Path
 
@@ -55,28 +72,121 @@ def _matplotlib_grey_lut() -> np.ndarray:
 GREY_LUT = _matplotlib_grey_lut()
 
 
+#: The most pixels of a PNG read without an expected shape (``octcl maps`` of
+#: a scan of any size): 4096x4096, 128 times a 256x512 B-scan. The header's
+#: size is checked before any pixel is decoded, so a file that claims a huge
+#: image costs nothing (Pillow's own limit, 89 million pixels, would first
+#: decode a quarter of a gigapixel).
+MAX_IMAGE_PIXELS = 4096 * 4096
+#: The largest image or ``.npy`` file read: twice an uncompressed RGBA PNG of
+#: :data:`MAX_IMAGE_PIXELS` (128 MiB), checked before the file is read.
+MAX_IMAGE_FILE_BYTES = 2 * 4 * MAX_IMAGE_PIXELS
+#: Age in seconds after which a temporary file of :func:`atomic_write` is taken
+#: for a killed writer's and removed (module docstring).
+STALE_TEMPORARY_AGE_S = 3600.0
+#: Hex digits of the random part of a temporary file's name.
+_TEMPORARY_HEX_DIGITS = 16
+
+
 class ImageFormatError(ValueError):
     """A PNG (or an array standing for one) that octcl cannot take as a B-scan or map; the message says why."""
+
+
+class OutputError(OSError):
+    """An output file that cannot be written; the message names it and says why. An earlier file is unchanged."""
+
+
+def check_output_path(path) -> Path:
+    """``path`` as a :class:`~pathlib.Path` if a file may be written there, else :class:`OutputError`.
+
+    Refuses a directory, a folder path through a file, and a folder (the
+    nearest one that exists) that this process may not write. Commands call
+    it before long work, so that a bad ``-o`` fails at once; :func:`atomic_write`
+    calls it too.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise OutputError(f"{path}: is a directory; give a file name")
+    existing = next(folder for folder in path.absolute().parents if folder.exists())
+    if not existing.is_dir():
+        raise OutputError(f"{path}: cannot make its folder: {existing} is a file")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise OutputError(f"{path}: cannot write in {existing} (permission denied or read-only)")
+    return path
+
+
+def _output_error(path: Path, exc: OSError) -> OutputError:
+    reason = exc.strerror or str(exc)
+    return OutputError(f"{path}: cannot write ({reason}); an earlier file there is unchanged")
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Remove :func:`atomic_write`'s temporary files of ``path`` left by killed writers (module docstring).
+
+    Best effort: a file that cannot be removed is left, and the write goes on.
+    """
+    prefix, suffix = f".{path.name}.", ".tmp"
+    length = len(prefix) + _TEMPORARY_HEX_DIGITS + len(suffix)
+    oldest = time.time() - STALE_TEMPORARY_AGE_S
+    with contextlib.suppress(OSError), os.scandir(path.parent) as entries:
+        for entry in entries:
+            name = entry.name
+            if len(name) != length or not (name.startswith(prefix) and name.endswith(suffix)):
+                continue
+            with contextlib.suppress(OSError, ValueError):
+                int(name[len(prefix):-len(suffix)], 16)
+                if entry.is_file(follow_symlinks=False) and entry.stat(follow_symlinks=False).st_mtime < oldest:
+                    os.unlink(entry.path)
+
+
+def _create_temporary(path: Path) -> tuple[int, str]:
+    """A new file ``.NAME.<hex>.tmp`` beside ``path``, opened for writing: (descriptor, name).
+
+    Created with ``os.open(..., 0o666)``, so the kernel applies the umask as
+    it does for ``open()``: :func:`tempfile.mkstemp` would give 0o600 whatever
+    the umask, and finding the umask to correct that (``os.umask`` sets it
+    to read it) is not safe while other threads create files.
+    """
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    while True:
+        name = str(path.with_name(f".{path.name}.{secrets.token_hex(_TEMPORARY_HEX_DIGITS // 2)}.tmp"))
+        try:
+            return os.open(name, flags, 0o666), name
+        except FileExistsError:  # 2^-64 per attempt
+            continue
 
 
 @contextlib.contextmanager
 def atomic_write(path, mode="wb"):
     """Open a temporary file beside ``path``; rename it over ``path`` on success.
 
-    On any exception the temporary file is removed and ``path`` is untouched.
+    The file gets the mode ``open()`` would give a new file (0o666 less the
+    umask; an earlier file's mode is not kept). Missing folders are made.
+    On any exception the temporary file is removed and ``path`` is
+    untouched; an :class:`OSError` about the output (of this function, or of
+    writing to the handle: a full disk) is raised as :class:`OutputError`.
+    Temporary files of this destination left by killed writers are removed
+    (module docstring).
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    path = check_output_path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_temporaries(path)
+        fd, tmp_name = _create_temporary(path)
+    except OSError as exc:
+        raise _output_error(path, exc) from None
     try:
         with os.fdopen(fd, mode) as handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp_name, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_name)
+        if isinstance(exc, OSError) and not isinstance(exc, OutputError) \
+                and exc.filename in (None, tmp_name, str(path)):  # not an error about another file
+            raise _output_error(path, exc) from None
         raise
 
 
@@ -92,14 +202,30 @@ def _png_header(head: bytes, source: str) -> tuple[int, int, int, int]:
     return width, height, bit_depth, colour_type
 
 
-def _read_bytes(path: Path, kind: str) -> bytes:
-    """The whole file, or an :class:`ImageFormatError` naming it when there is none."""
+def read_image_bytes(path, kind: str = "PNG file") -> bytes:
+    """The whole of an image or ``.npy`` file, at most :data:`MAX_IMAGE_FILE_BYTES` of it.
+
+    Raises
+    ------
+    ImageFormatError
+        Naming the file: missing, a directory, unreadable, or larger than
+        the limit (checked before reading).
+    """
+    path = Path(path)
     try:
-        return path.read_bytes()
+        with open(path, "rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            data = handle.read(MAX_IMAGE_FILE_BYTES + 1)  # files of unknown size (pipes) stop here too
     except FileNotFoundError:
         raise ImageFormatError(f"{path}: no such file") from None
     except IsADirectoryError:
         raise ImageFormatError(f"{path}: is a directory, not a {kind}") from None
+    except OSError as exc:
+        raise ImageFormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if len(data) > MAX_IMAGE_FILE_BYTES:
+        raise ImageFormatError(f"{path}: {max(size, len(data)):,} bytes, more than the {MAX_IMAGE_FILE_BYTES:,} "
+                               f"an image octcl reads may have")
+    return data
 
 
 def read_png_pixels(path, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -118,10 +244,10 @@ def read_png_pixels(path, shape: tuple[int, int] | None = None) -> np.ndarray:
     ------
     ImageFormatError
         Not a PNG, truncated or corrupt, not 8-bit, a palette image, or a
-        size other than ``shape`` (:func:`decode_png_pixels`).
+        size other than ``shape``, more than :data:`MAX_IMAGE_PIXELS` pixels
+        without a ``shape``, or a file larger than :data:`MAX_IMAGE_FILE_BYTES`.
     """
-    path = Path(path)
-    return decode_png_pixels(_read_bytes(path, "PNG file"), shape, source=str(path))
+    return decode_png_pixels(read_image_bytes(path), shape, source=str(path))
 
 
 def decode_png_pixels(data: bytes, shape: tuple[int, int] | None = None, source: str = "PNG") -> np.ndarray:
@@ -143,11 +269,14 @@ def decode_png_pixels(data: bytes, shape: tuple[int, int] | None = None, source:
             f"{source}: image is {height}x{width} (rows x columns), expected "
             f"{shape[0]}x{shape[1]}"
         )
+    if width * height > MAX_IMAGE_PIXELS or not width or not height:
+        raise ImageFormatError(f"{source}: image is {height}x{width} (rows x columns); octcl reads images of "
+                               f"1 to {MAX_IMAGE_PIXELS:,} pixels")
     try:
         with Image.open(io.BytesIO(data)) as image:
             image.load()
             pixels = np.asarray(image)
-    except (OSError, SyntaxError, ValueError, zlib.error) as exc:
+    except (OSError, SyntaxError, ValueError, zlib.error, Image.DecompressionBombError) as exc:
         raise ImageFormatError(f"{source}: truncated or corrupt PNG ({exc})") from None
     return pixels[:, :, None] if pixels.ndim == 2 else pixels
 
@@ -250,21 +379,30 @@ def _decode_npy(data: bytes, source: str) -> np.ndarray:
         version = np.lib.format.read_magic(stream)
         header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
         array_shape, fortran_order, dtype = header(stream)
-    except ValueError as exc:
-        raise ImageFormatError(f"{source}: corrupt .npy header ({exc})") from None
+    except Exception as exc:  # noqa: BLE001 - NumPy parses the header with ast and tokenize, which raise
+        # ValueError, SyntaxError, TokenError, RecursionError, TypeError...: every one means a corrupt header.
+        reason = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise ImageFormatError(f"{source}: corrupt .npy header ({reason})") from None
     if dtype.hasobject:
         raise ImageFormatError(
             f"{source}: .npy of Python objects (dtype object), not loaded (that would run pickle); "
             f"a B-scan is a 2-D uint8 array of grey levels")
+    if any(length < 0 for length in array_shape):
+        raise ImageFormatError(f"{source}: corrupt .npy header (shape {array_shape})")
+    if dtype.itemsize == 0 or dtype.subdtype is not None or dtype.names is not None:
+        raise ImageFormatError(f"{source}: .npy of dtype {dtype}; a B-scan is a 2-D uint8 array of grey levels")
     stored = len(data) - stream.tell()
-    needed = int(np.prod(array_shape, dtype=np.int64)) * dtype.itemsize
+    count = math.prod(array_shape)  # Python integers: a header's shape may overflow int64
+    needed = count * dtype.itemsize
     if stored < needed:
         raise ImageFormatError(
             f"{source}: truncated .npy file: its header announces a {dtype} array of shape "
             f"{array_shape} ({needed:,} bytes) but {stored:,} bytes follow")
-    array = np.frombuffer(data, dtype=dtype, count=needed // dtype.itemsize if dtype.itemsize else 0,
-                          offset=stream.tell())
-    return array.reshape(array_shape, order="F" if fortran_order else "C")
+    array = np.frombuffer(data, dtype=dtype, count=count, offset=stream.tell())
+    try:
+        return array.reshape(array_shape, order="F" if fortran_order else "C")
+    except ValueError:  # an empty array whose other lengths overflow NumPy's sizes: (0, 2**63 - 1)
+        raise ImageFormatError(f"{source}: .npy of shape {array_shape}, which NumPy cannot hold") from None
 
 
 def decode_scan_levels(data: bytes, shape: tuple[int, int], source: str) -> np.ndarray:

@@ -1,8 +1,11 @@
 """The ``octcl`` command.
 
 Subcommands: ``render``, ``maps``, ``score``, ``phantom``, ``invert``,
-``weights``, ``devices``. Exit status 0 on success, 2 with a one-line reason
-on bad input or a missing prerequisite, 1 on an unexpected failure.
+``weights``, ``devices``. Exit status 0 on success; 2 with a one-line reason
+(naming the file, line or value) on bad arguments, bad input, an output that
+cannot be written or a missing prerequisite; 1 with one line naming the
+exception on an unexpected failure, whose traceback ``--debug`` shows. No
+traceback reaches a user otherwise.
 
 Standard output carries the result: a short summary for people by default
 (what was written where, the score table, the time taken), the same values
@@ -18,9 +21,10 @@ import argparse
 import json
 import sys
 import time
+import traceback
 from pathlib import Path
 
-from ._io import ImageFormatError
+from ._io import ImageFormatError, OutputError, check_output_path
 from ._progress import ProgressDisplay, format_seconds
 from .config import DEFAULT_CONFIG, ConfigError, ScannerConfig
 from .phantom import Phantom, PhantomError
@@ -28,6 +32,13 @@ from .phantom import Phantom, PhantomError
 
 class UsageError(ValueError):
     """A command line that cannot be carried out; the message says why."""
+
+
+class _ArgumentParser(argparse.ArgumentParser):
+    """argparse, but a bad command line is one line on standard error, as every other refusal."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _config(args) -> ScannerConfig:
@@ -64,6 +75,7 @@ def _cmd_render(args) -> int:
     from .render import render
 
     started = time.monotonic()
+    check_output_path(args.output)
     config = _config(args)
     phantom = Phantom.load(args.phantom, config, truncate=args.truncate)
     settings = None
@@ -101,6 +113,8 @@ def _cmd_score(args) -> int:
     if args.refs or args.preds:
         if not (args.refs and args.preds) or args.ref or args.pred:
             raise UsageError("give either REF.png PRED.png or both --refs DIR and --preds DIR")
+        if args.csv:
+            check_output_path(args.csv)
         with _display(args, "score") as display:
             result = score_directories(args.refs, args.preds,
                                        progress=lambda i, n, name: display.update(i / n, f"{i}/{n} {name}"))
@@ -279,12 +293,16 @@ def _cmd_devices(args) -> int:
 
 # ------------------------------------------------------------------ parser
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _ArgumentParser(
         prog="octcl", description="OpenCL-accelerated coherent inversion of OCT B-scans into digital phantoms.")
+    debug_help = "on an unexpected failure, show the traceback (not only its one-line summary)"
+    parser.add_argument("--debug", action="store_true", help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def command(name, help_text, handler):
         p = sub.add_parser(name, help=help_text, description=help_text)
+        # Also after the subcommand; SUPPRESS keeps a --debug given before it.
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=debug_help)
         p.add_argument("--json", action="store_true",
                        help="print the result as JSON on stdout (shapes in the README) instead of a summary")
         p.add_argument("-q", "--quiet", action="store_true",
@@ -383,15 +401,27 @@ def main(argv=None) -> int:
     from ._runtime import OpenCLUnavailableError
 
     expected = (PhantomError, ImageFormatError, ConfigError, UsageError, WeightsMissingError,
-                WeightsIntegrityError, OpenCLUnavailableError, FileNotFoundError, ValueError, ConnectionError)
+                WeightsIntegrityError, OpenCLUnavailableError, OutputError, FileNotFoundError, ValueError,
+                ConnectionError)
     try:
         return args.handler(args)
     except expected as exc:
-        print(f"octcl {args.command}: error: {exc}", file=sys.stderr)
+        print(f"octcl {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"octcl {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug or an environment octcl does not know: one line, or all with --debug
+        if args.debug:
+            traceback.print_exc()
+        print(f"octcl {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)}"
+              + ("" if args.debug else "; rerun with --debug for the traceback"), file=sys.stderr)
+        return 1
+
+
+def _one_line(exc: BaseException) -> str:
+    """The exception's message on one line (a message of several lines has its lines joined by ' / ')."""
+    return " / ".join(line.strip() for line in str(exc).splitlines() if line.strip()) or "(no message)"
 
 
 if __name__ == "__main__":

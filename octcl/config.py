@@ -12,6 +12,8 @@ import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from ._io import MAX_IMAGE_PIXELS
+
 
 class ConfigError(ValueError):
     """A Configuration.ini that cannot be used; the message names file, key and value."""
@@ -65,6 +67,10 @@ class ScannerConfig:
                 raise ConfigError(f"{field.name} must be a positive finite number, got {value!r}")
         if self.depth_pixels % 2:
             raise ConfigError(f"depth_pixels must be even, got {self.depth_pixels}")
+        if self.depth_pixels * self.a_scans > MAX_IMAGE_PIXELS:
+            raise ConfigError(
+                f"depth_pixels x a_scans = {self.depth_pixels} x {self.a_scans}: a B-scan of more than "
+                f"{MAX_IMAGE_PIXELS:,} pixels, which octcl could not read back")
 
     @property
     def lateral_pitch_um(self) -> float:
@@ -99,6 +105,8 @@ class ScannerConfig:
             raise ConfigError(f"{path}: no such file") from None
         except IsADirectoryError:
             raise ConfigError(f"{path}: is a directory, not a Configuration.ini file") from None
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
         except UnicodeDecodeError as exc:
             raise ConfigError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from None
         except configparser.Error as exc:

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from scipy.ndimage import uniform_filter
 
-from octcl._io import GREY_LUT, read_scan, write_grey_png
+from octcl._io import GREY_LUT, check_output_path, read_scan, write_grey_png
 
 MAP_NAMES = ("OAC", "SC", "RSC")
 
@@ -309,15 +309,18 @@ def write_maps(scan_path, out_dir=None) -> dict[str, Path]:
     -------
     dict
         Map name -> path written.
+
+    Raises
+    ------
+    OutputError
+        An output path cannot be written; checked before the scan is read.
     """
     scan_path = Path(scan_path)
     out_dir = scan_path.parent if out_dir is None else Path(out_dir)
-    written = {}
+    paths = {name: check_output_path(out_dir / f"{scan_path.stem}_{name}.png") for name in MAP_NAMES}
     for name, levels in map_levels(read_scan(scan_path)).items():
-        path = out_dir / f"{scan_path.stem}_{name}.png"
-        write_grey_png(path, levels)
-        written[name] = path
-    return written
+        write_grey_png(paths[name], levels)
+    return paths
 
 
 # ---------------------------------------------------------------------------

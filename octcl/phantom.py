@@ -339,6 +339,8 @@ def _read_bytes(path: Path, max_rows: int, truncate: bool) -> tuple[bytes, bool]
         raise PhantomError(f"{path}: no such file") from None
     except IsADirectoryError:
         raise PhantomError(f"{path}: is a directory, not a phantom file") from None
+    except OSError as exc:
+        raise PhantomError(f"{path}: cannot read ({exc.strerror or exc})") from None
     if len(data) <= limit:
         return data, False
     if not truncate:

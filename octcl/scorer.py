@@ -62,11 +62,30 @@ def _grey_as_official(pixels: np.ndarray) -> np.ndarray:
     return (red * _LUMINANCE[0] + green * _LUMINANCE[1]) + blue * _LUMINANCE[2]
 
 
-def _read_map_for_metrics(path) -> np.ndarray:
-    """A map PNG as the official metric reads it: (H, W) float64 grey in [0, 1]."""
-    from skimage.io import imread
+def _grey_of_pixels(pixels: np.ndarray, source: str = "image") -> np.ndarray:
+    """:func:`_grey_as_official` of a PNG's stored (H, W, C) pixels (:func:`octcl._io.read_png_pixels`).
 
-    return _grey_as_official(imread(path))
+    Raises :class:`octcl._io.ImageFormatError` starting with ``source`` for
+    grey+alpha, which the official reading does not take.
+    """
+    from ._io import ImageFormatError
+
+    if pixels.shape[2] == 2:
+        raise ImageFormatError(f"{source}: grey+alpha PNG, which the official metric cannot read; "
+                               "save it as 8-bit grey, RGB or RGBA")
+    return _grey_as_official(pixels[:, :, 0] if pixels.shape[2] == 1 else pixels)
+
+
+def _read_map_for_metrics(path) -> np.ndarray:
+    """A map PNG as the official metric reads it: (H, W) float64 grey in [0, 1].
+
+    The pixels are those ``skimage.io.imread`` decodes, read by octcl's
+    strict reader (:func:`octcl._io.read_png_pixels`), which refuses what is
+    not an 8-bit PNG and checks the size in the header before decoding.
+    """
+    from ._io import read_png_pixels
+
+    return _grey_of_pixels(read_png_pixels(path), str(path))
 
 
 @functools.lru_cache(maxsize=1)
@@ -146,10 +165,10 @@ def _maps_for_metrics(struct: np.ndarray, scan: np.ndarray) -> dict:
 
 def _scan_maps_for_metrics(path) -> dict:
     """The four maps of a scan PNG, each as the official metric reads it."""
-    from ._io import read_scan
+    from ._io import read_png_pixels, rgb_of_pixels, scan_of_rgb
 
-    scan = read_scan(path, shape=SCAN_SHAPE)  # first: its checks name the file and the problem
-    return _maps_for_metrics(_read_map_for_metrics(path), scan)
+    pixels = read_png_pixels(path, shape=SCAN_SHAPE)
+    return _maps_for_metrics(_grey_of_pixels(pixels, str(path)), scan_of_rgb(rgb_of_pixels(pixels)))
 
 
 def score(ref, pred) -> dict:

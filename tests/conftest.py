@@ -1,8 +1,36 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures and options."""
 
 from pathlib import Path
 
 import pytest
+
+#: Factor by which ``--fuzz-long`` alone multiplies the fuzz tests' example budgets.
+FUZZ_LONG_FACTOR = 50
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--fuzz-long", type=int, nargs="?", const=FUZZ_LONG_FACTOR, default=1, metavar="FACTOR",
+        help=f"run the fuzz tests (tests/test_fuzz_inputs.py) with FACTOR times their example budget "
+             f"(default {FUZZ_LONG_FACTOR}) and new random inputs each run")
+
+
+@pytest.fixture(scope="session")
+def fuzz_settings(request):
+    """``fuzz_settings(examples)``: Hypothesis settings for a fuzz test of that many examples.
+
+    Without ``--fuzz-long`` the examples are derandomized (the same inputs
+    every run, so CI cannot flake); with it their number is multiplied and
+    they are drawn anew. No deadline: the machine is shared and its timing
+    noisy; hangs are caught by the tests' own alarm.
+    """
+    from hypothesis import HealthCheck, settings
+
+    factor = request.config.getoption("fuzz_long")
+    return lambda examples: settings(
+        max_examples=examples * factor, deadline=None, database=None, derandomize=factor == 1,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.large_base_example,
+                               HealthCheck.function_scoped_fixture])
 
 
 @pytest.fixture(scope="session")

@@ -297,3 +297,19 @@ def test_tls_cluster_takes_only_clients_with_a_certificate(tmp_path):
     finally:
         scheduler.terminate()
         scheduler.wait(timeout=20)
+
+
+def test_target_larger_than_any_scan_fails_unread(tmp_path):
+    """A target file larger than MAX_IMAGE_FILE_BYTES is a failed scan, named, without being read into memory
+    (and with nothing left to invert, no cluster is started)."""
+    from octcl._io import MAX_IMAGE_FILE_BYTES
+    from octcl.host.batch import invert_batch
+
+    (tmp_path / "targets").mkdir()
+    with open(tmp_path / "targets" / "huge.npy", "wb") as handle:  # sparse: no disk used
+        handle.truncate(MAX_IMAGE_FILE_BYTES + 1)
+    summary = invert_batch(tmp_path / "targets", tmp_path / "out", time_budget_s=BUDGET_S, workers=1)
+    row = summary["scans"]["huge.npy"]
+    assert summary["counts"]["failed"] == 1 and row["status"] == "failed" and summary["cluster"] is None
+    assert row["error"] == (f"{tmp_path / 'targets' / 'huge.npy'}: {MAX_IMAGE_FILE_BYTES + 1:,} bytes, more than "
+                            f"the {MAX_IMAGE_FILE_BYTES:,} an image octcl reads may have")

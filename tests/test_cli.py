@@ -1,13 +1,17 @@
-"""The ``octcl`` command: happy paths on real data and one-line errors with exit status 2."""
+"""The ``octcl`` command: happy paths on real data, one-line errors (exit 2), one-line internal errors (exit 1)."""
 
+import errno
 import json
+import os
+import struct
 import subprocess
 import sys
+import zlib
 
 import numpy as np
 import pytest
 
-from octcl._io import read_png_rgb
+from octcl._io import PNG_SIGNATURE, _png_chunk, read_png_rgb
 from octcl.cli import main
 from octcl.phantom import Phantom
 from octcl.scorer import COMPONENTS
@@ -130,13 +134,103 @@ def test_render_numpy_backend_and_truncate(tmp_path, capsys):
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--iterations", "401"],
      "iterations must be a whole number in [0, 400]"),
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--threads", "0"], "threads must be a whole number ≥ 1"),
+    # Images that claim more pixels than octcl reads are refused by their header, before decoding.
+    (["maps", "{tmp}/huge.png"], "huge.png: image is 100000x100000 (rows x columns); octcl reads images of 1 to"),
+    (["score", "{tmp}/huge.png", "{tmp}/huge.png"], "huge.png: image is 100000x100000 (rows x columns), expected"),
+    (["invert", "{tmp}/huge.png", "-o", "{tmp}/x.txt"], "huge.png: image is 100000x100000"),
+    # Output paths that cannot be written, refused before any work.
+    (["render", "{tmp}/bad_phantom.txt", "-o", "{tmp}"], "error: {tmp}: is a directory; give a file name"),
+    (["render", "{tmp}/bad_phantom.txt", "-o", "{tmp}/bad.png/x.png"], "cannot make its folder: {tmp}/bad.png is a file"),
+    (["phantom", "-o", "{tmp}"], "{tmp}: is a directory"),
+    (["maps", "{tmp}/bad.png", "-o", "{tmp}/bad_phantom.txt"], "{tmp}/bad_phantom.txt is a file"),
+    (["score", "--refs", "{tmp}", "--preds", "{tmp}", "--csv", "{tmp}"], "{tmp}: is a directory"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}"], "{tmp}: is a directory"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--report", "{tmp}/bad.png/r.json"], "bad.png is a file"),
+    # Bad command lines: argparse's refusals, on one line too.
+    (["render", "{tmp}/bad_phantom.txt"], "octcl render: error: the following arguments are required: -o/--output"),
+    (["render", "{tmp}/bad_phantom.txt", "-o", "{tmp}/x.png", "--spread-width", "wide"], "invalid int value: 'wide'"),
+    (["no-such-command"], "octcl: error: argument COMMAND: invalid choice: 'no-such-command'"),
 ])
 def test_bad_input_exits_2_with_one_line_reason(tmp_path, capsys, argv, message):
     (tmp_path / "bad.png").write_text("not an image")
     (tmp_path / "bad_phantom.txt").write_text("1 2 3 4\n1 2 3 abc\n")
-    status, out, err = run(capsys, *[a.format(tmp=tmp_path) for a in argv])
+    (tmp_path / "huge.png").write_bytes(png_header_only(100_000, 100_000))
+    try:
+        status, out, err = run(capsys, *[a.format(tmp=tmp_path) for a in argv])
+    except SystemExit as exit_info:  # argparse's own refusals
+        status, (out, err) = exit_info.code, capsys.readouterr()
     assert status == 2
-    assert message in err and err.count("\n") == 1 and err.startswith("octcl ")
+    assert message.format(tmp=tmp_path) in err and err.count("\n") == 1 and err.startswith("octcl")
+
+
+def png_header_only(width: int, height: int) -> bytes:
+    """A PNG that claims ``height`` x ``width`` 8-bit RGBA pixels and holds none."""
+    header = struct.pack(">IIBBBBB", width, height, 8, 6, 0, 0, 0)
+    return PNG_SIGNATURE + _png_chunk(b"IHDR", header) + _png_chunk(b"IDAT", zlib.compress(b"")) \
+        + _png_chunk(b"IEND", b"")
+
+
+def test_unexpected_failure_is_one_line_or_a_traceback_with_debug(tmp_path, capsys, monkeypatch):
+    """A bug exits 1 with one line naming the exception; --debug (before or after the command) adds the traceback."""
+    import octcl.maps
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("wrong turn\nin two lines")
+
+    monkeypatch.setattr(octcl.maps, "write_maps", broken)
+    status, out, err = run(capsys, "maps", tmp_path / "scan.png")
+    assert (status, out) == (1, "")
+    assert err == ("octcl maps: internal error: RuntimeError: wrong turn / in two lines; "
+                   "rerun with --debug for the traceback\n")
+    for argv in (["--debug", "maps", tmp_path / "scan.png"], ["maps", tmp_path / "scan.png", "--debug"]):
+        status, out, err = run(capsys, *argv)
+        assert status == 1 and err.startswith("Traceback (most recent call last):")
+        assert 'raise RuntimeError("wrong turn' in err
+        assert err.splitlines()[-1] == "octcl maps: internal error: RuntimeError: wrong turn / in two lines"
+
+
+@pytest.mark.parametrize("failure", [errno.ENOSPC, errno.EACCES, errno.EROFS])
+def test_output_that_fails_while_written_keeps_the_earlier_file(tmp_path, capsys, monkeypatch, failure):
+    """A full disk, a folder without permission or a read-only file system while the output is written:
+    exit 2, one line, the earlier file unchanged and no temporary file left."""
+    phantom = tmp_path / "small.txt"
+    Phantom([0.0], [0.0], [100.0], [1.0]).save(phantom)
+    scan = tmp_path / "scan.png"
+    scan.write_bytes(b"previous output")
+
+    def fail(fd):
+        raise OSError(failure, os.strerror(failure))
+
+    monkeypatch.setattr(os, "fsync", fail)
+    status, out, err = run(capsys, "render", phantom, "-o", scan, "--backend", "numpy", "--quiet")
+    assert (status, out) == (2, "") and err.count("\n") == 1
+    assert err == f"octcl render: error: {scan}: cannot write ({os.strerror(failure)}); an earlier file there " \
+                  "is unchanged\n"
+    assert scan.read_bytes() == b"previous output"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["scan.png", "small.txt"]
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes in read-only folders")
+def test_read_only_folder_is_refused_before_work(tmp_path, capsys):
+    phantom = tmp_path / "small.txt"
+    Phantom([0.0], [0.0], [100.0], [1.0]).save(phantom)
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    (folder / "scan.png").write_bytes(b"previous output")
+    folder.chmod(0o555)
+    try:
+        status, _, err = run(capsys, "render", phantom, "-o", folder / "scan.png")
+    finally:
+        folder.chmod(0o755)
+    assert status == 2 and f"cannot write in {folder}" in err and err.count("\n") == 1
+    assert (folder / "scan.png").read_bytes() == b"previous output"
+
+
+def test_output_in_a_missing_folder_makes_the_folder(tmp_path, capsys):
+    phantom = tmp_path / "small.txt"
+    Phantom([0.0], [0.0], [100.0], [1.0]).save(phantom)
+    status, _, _ = run(capsys, "render", phantom, "-o", tmp_path / "new" / "folder" / "scan.png", "--backend", "numpy")
+    assert status == 0 and read_png_rgb(tmp_path / "new" / "folder" / "scan.png").shape == (256, 512, 3)
 
 
 def test_render_kernel_variants_agree(tmp_path, capsys):

@@ -3,13 +3,16 @@
 import io
 import os
 import re
+import struct
+import zlib
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from octcl._io import (GREY_LUT, ImageFormatError, atomic_write, check_scan_levels, decode_scan_levels,
-                       read_png_rgb, read_scan, write_grey_png)
+from octcl._io import (GREY_LUT, MAX_IMAGE_FILE_BYTES, MAX_IMAGE_PIXELS, PNG_SIGNATURE, ImageFormatError,
+                       OutputError, _png_chunk, atomic_write, check_scan_levels, decode_scan_levels,
+                       read_image_bytes, read_png_pixels, read_png_rgb, read_scan, write_grey_png)
 
 SHAPE = (256, 512)
 
@@ -174,3 +177,166 @@ def test_colour_png_is_refused_as_levels(tmp_path):
         decode_scan_levels(data, SHAPE, "colour.png")
     with pytest.raises(ImageFormatError, match=r"c\.png: image is 200x512"):
         decode_scan_levels(save(tmp_path / "c.png", np.zeros((200, 512), np.uint8)).read_bytes(), SHAPE, "c.png")
+
+
+def png_claiming(width: int, height: int) -> bytes:
+    """A PNG whose header claims ``height`` x ``width`` 8-bit grey pixels and which holds none."""
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return PNG_SIGNATURE + _png_chunk(b"IHDR", header) + _png_chunk(b"IDAT", zlib.compress(b"")) \
+        + _png_chunk(b"IEND", b"")
+
+
+@pytest.mark.parametrize("width, height", [(100_000, 100_000), (4097, 4096), (2**31 - 1, 2**31 - 1), (0, 256)])
+def test_png_size_is_refused_by_its_header_before_decoding(tmp_path, width, height):
+    """Every PNG reader, asked for a shape or not, refuses a claimed size it would not read, before Pillow sees it
+    (Pillow would decode 89 million pixels before its own DecompressionBombError)."""
+    from octcl.scorer import _read_map_for_metrics
+
+    path = tmp_path / "bomb.png"
+    path.write_bytes(png_claiming(width, height))
+    expected = re.escape(f"bomb.png: image is {height}x{width} (rows x columns); octcl reads images of 1 to "
+                         f"{MAX_IMAGE_PIXELS:,} pixels")
+    for reader in (read_png_pixels, read_scan, _read_map_for_metrics):
+        with pytest.raises(ImageFormatError, match=expected):
+            reader(path)
+    with pytest.raises(ImageFormatError, match=r"bomb\.png: image is \d+x\d+ \(rows x columns\), expected 256x512"):
+        decode_scan_levels(path.read_bytes(), SHAPE, "bomb.png")
+
+
+def test_largest_claimed_png_that_is_read(tmp_path):
+    path = tmp_path / "tall.png"
+    path.write_bytes(png_claiming(1, MAX_IMAGE_PIXELS))
+    with pytest.raises(ImageFormatError, match=r"tall\.png: truncated or corrupt PNG"):  # read, found empty
+        read_png_pixels(path)
+
+
+def test_image_file_larger_than_the_limit_is_refused_unread(tmp_path):
+    path = tmp_path / "large.png"
+    with open(path, "wb") as handle:  # sparse: no disk used
+        handle.write(png_claiming(512, 256))
+        handle.truncate(MAX_IMAGE_FILE_BYTES + 1)
+    message = rf"large\.png: {MAX_IMAGE_FILE_BYTES + 1:,} bytes, more than the {MAX_IMAGE_FILE_BYTES:,} an image"
+    for read in (read_image_bytes, read_scan):
+        with pytest.raises(ImageFormatError, match=message):
+            read(path)
+    with pytest.raises(ImageFormatError, match=r"is a directory, not a PNG file"):
+        read_scan(tmp_path)
+
+
+def test_output_that_is_a_directory_or_beyond_a_file_is_refused(tmp_path):
+    (tmp_path / "file").write_text("old")
+    with pytest.raises(OutputError, match=rf"^{re.escape(str(tmp_path))}: is a directory; give a file name$"):
+        with atomic_write(tmp_path):
+            pass
+    with pytest.raises(OutputError, match=rf"cannot make its folder: {re.escape(str(tmp_path / 'file'))} is a file"):
+        write_grey_png(tmp_path / "file" / "sub" / "x.png", np.zeros(SHAPE, np.uint8))
+    assert sorted(os.listdir(tmp_path)) == ["file"] and (tmp_path / "file").read_text() == "old"
+
+
+def test_atomic_write_passes_on_errors_about_other_files(tmp_path):
+    """An OSError of the caller about another file is the caller's, not an output error."""
+    with pytest.raises(FileNotFoundError) as caught:
+        with atomic_write(tmp_path / "out.txt") as handle:
+            handle.write((tmp_path / "missing.txt").read_bytes())
+    assert not isinstance(caught.value, OutputError) and os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+def test_outputs_get_the_mode_open_gives(tmp_path, umask):
+    """Every writer's file has the permissions open() gives a new file under the umask, also when it replaces
+    a file with other permissions."""
+    from octcl.phantom import Phantom
+
+    previous = os.umask(umask)
+    try:
+        with open(tmp_path / "by_open", "w"):
+            pass
+        (tmp_path / "old.txt").write_text("old")
+        os.chmod(tmp_path / "old.txt", 0o600)
+        with atomic_write(tmp_path / "old.txt") as handle:
+            handle.write(b"new")
+        write_grey_png(tmp_path / "scan.png", np.zeros(SHAPE, np.uint8))
+        Phantom([0.0], [0.0], [1.0], [1.0]).save(tmp_path / "folder" / "phantom.txt")
+    finally:
+        os.umask(previous)
+    expected = 0o666 & ~umask
+    assert os.stat(tmp_path / "by_open").st_mode & 0o777 == expected
+    for name in ("old.txt", "scan.png", "folder/phantom.txt"):
+        assert os.stat(tmp_path / name).st_mode & 0o777 == expected, name
+
+
+def temporaries(folder) -> list[str]:
+    return sorted(name for name in os.listdir(folder) if name.endswith(".tmp"))
+
+
+def test_killed_writer_leaves_a_hidden_temporary_that_a_later_write_removes_once_stale(tmp_path):
+    """SIGKILL in the middle of a write: the output is untouched; the temporary file it leaves is removed by the
+    next write to the same output once older than STALE_TEMPORARY_AGE_S, and kept while younger (it could be a
+    live writer's)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from octcl._io import STALE_TEMPORARY_AGE_S
+
+    out = tmp_path / "out.txt"
+    out.write_text("earlier")
+    killed = ("import os, signal, sys\nfrom octcl._io import atomic_write\n"
+              "with atomic_write(sys.argv[1]) as handle:\n"
+              "    handle.write(b'half a file'); handle.flush(); os.kill(os.getpid(), signal.SIGKILL)\n")
+    for _ in range(2):
+        result = subprocess.run([sys.executable, "-c", killed, str(out)], timeout=60)
+        assert result.returncode == -signal.SIGKILL
+    left = temporaries(tmp_path)
+    assert len(left) == 2 and all(re.fullmatch(r"\.out\.txt\.[0-9a-f]{16}\.tmp", name) for name in left)
+    assert out.read_text() == "earlier"
+    other = tmp_path / ".other.txt.0123456789abcdef.tmp"  # another output's: never touched here
+    other.write_text("x")
+    stale = time.time() - STALE_TEMPORARY_AGE_S - 60
+    for name in (left[0], other.name):
+        os.utime(tmp_path / name, (stale, stale))
+    with atomic_write(out) as handle:
+        handle.write(b"new")
+    assert out.read_text() == "new"
+    assert temporaries(tmp_path) == sorted([left[1], other.name])
+
+
+_CHECKPOINTING_WRITER = """
+import sys
+from octcl.phantom import Phantom
+path, writer, versions = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
+for version in range(versions):
+    rows = 2000 + 37 * version
+    Phantom([writer] * rows, [0.0] * rows, [float(version)] * rows, [1.0] * rows).save(path)
+"""
+
+
+def test_two_writers_and_a_reader_never_see_a_partial_file(tmp_path):
+    """Two processes save phantoms to one output as fast as they can (two `octcl invert` runs given the same -o,
+    each checkpointing), while this one loads it again and again: every load is a whole phantom one writer
+    saved (its row count and values say which), and no temporary file is left."""
+    import subprocess
+    import sys
+
+    from octcl.phantom import Phantom
+
+    path = tmp_path / "phantom.txt"
+    Phantom([0.0], [0.0], [0.0], [1.0]).save(path)
+    writers = [subprocess.Popen([sys.executable, "-c", _CHECKPOINTING_WRITER, str(path), str(writer), "60"])
+               for writer in (1, 2)]
+    seen = set()
+    try:
+        while any(writer.poll() is None for writer in writers):
+            phantom = Phantom.load(path)
+            writer, version = phantom.x_um[0], phantom.z_um[0]
+            assert (phantom.x_um == writer).all() and (phantom.z_um == version).all()
+            if writer:
+                assert len(phantom) == 2000 + 37 * version
+                seen.add((writer, version))
+    finally:
+        for writer in writers:
+            writer.wait(timeout=120)
+    assert [writer.returncode for writer in writers] == [0, 0]
+    assert len({writer for writer, _ in seen}) == 2 and len(seen) >= 10  # both writers were read, often
+    assert os.listdir(tmp_path) == ["phantom.txt"]

@@ -48,7 +48,7 @@ from pathlib import Path
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from octcl._io import atomic_write
+from octcl._io import ImageFormatError, atomic_write, read_image_bytes
 from octcl.scorer import COMPONENTS
 
 from .report import write_reports
@@ -300,9 +300,10 @@ def invert_batch(targets_dir, out_dir, time_budget_s: float = 600.0, seed: int =
     rows, todo = {}, []
     for scan in scans:
         try:
-            report = None if force else completed_report(scan, sha256(scan.target.read_bytes()), settings)
-        except OSError as exc:
-            rows[scan.name] = _failed(scan.name, f"{scan.target}: cannot read ({exc.strerror or exc})")
+            report = None if force else completed_report(scan, sha256(read_image_bytes(scan.target, "target")),
+                                                         settings)
+        except ImageFormatError as exc:  # unreadable, or larger than any target octcl reads
+            rows[scan.name] = _failed(scan.name, str(exc))
             continue
         if report is None:
             rows[scan.name] = {"scan": scan.name, "status": "pending", "error": None}
@@ -352,9 +353,9 @@ def _run(client, todo: list[Scan], rows: dict, settings: dict, time_budget_s: fl
     def submit_next() -> bool:
         for scan in queue:
             try:
-                data = scan.target.read_bytes()
-            except OSError as exc:
-                rows[scan.name] = _failed(scan.name, f"{scan.target}: cannot read ({exc.strerror or exc})")
+                data = read_image_bytes(scan.target, "target")
+            except ImageFormatError as exc:
+                rows[scan.name] = _failed(scan.name, str(exc))
                 continue
             future = client.submit(invert_scan, scan.name, data, time_budget_s, seed, invert_options,
                                    key=f"invert-{uuid.uuid4().hex}", resources={SCAN_RESOURCE: 1},
