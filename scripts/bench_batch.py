@@ -17,7 +17,9 @@ mode's thread count per scan (all cores for ``sequential``, T otherwise):
 - ``cluster:WxT``: a real cluster on this machine, ``dask scheduler`` and W
   ``dask worker --nthreads T`` processes started as subprocesses talking TCP
   on 127.0.0.1, reached with ``scheduler=ADDRESS`` (their start is not
-  included).
+  included), with the worker setting ``docs/batch.md`` recommends (the
+  nanny's ``MALLOC_TRIM_THRESHOLD_`` unset, in a Dask configuration file);
+- ``stock:WxT``: the same with Dask's defaults.
 
 Per mode: scans per hour (scans / wall time of the whole batch), CPU use
 (CPU seconds of the inversions, all threads, over wall time × cores), the
@@ -26,7 +28,7 @@ sequential), and the global score (mean of the 8 per-component medians).
 Results go to ``--out``: ``bench_batch.json``, ``bench_batch.csv`` and
 ``bench_batch.png`` (scans per hour and CPU use per mode).
 
-Example (about 20 minutes on two idle cores)::
+Example (about 15 minutes on two idle cores)::
 
     python scripts/bench_batch.py --scans 4 --iterations 20 --field-iterations 600 --out bench_batch
 """
@@ -87,9 +89,23 @@ def run_sequential(targets: Path, out: Path, budget: float, seed: int, schedule:
     return {"rows": json.loads(done.stdout.splitlines()[-1]), "wall_s": time.monotonic() - started}
 
 
-def start_stock_cluster(folder: Path, workers: int, threads: int):
-    """``dask scheduler`` and ``workers`` × ``dask worker --nthreads threads`` on 127.0.0.1."""
+#: The worker setting docs/batch.md recommends, as a Dask configuration file.
+RECOMMENDED_CONFIG = "distributed:\n  nanny:\n    pre-spawn-environ:\n      MALLOC_TRIM_THRESHOLD_: null\n"
+
+
+def start_stock_cluster(folder: Path, workers: int, threads: int, recommended: bool):
+    """``dask scheduler`` and ``workers`` × ``dask worker --nthreads threads`` on 127.0.0.1.
+
+    ``recommended``: with :data:`RECOMMENDED_CONFIG` (``DASK_CONFIG`` points at
+    it), else Dask's defaults.
+    """
     from distributed import Client
+
+    environment = dict(os.environ)
+    if recommended:
+        (folder / "config").mkdir()
+        (folder / "config" / "distributed.yaml").write_text(RECOMMENDED_CONFIG)
+        environment["DASK_CONFIG"] = str(folder / "config")
 
     file = folder / "scheduler.json"
     # --dashboard-address: without it the scheduler's and workers' HTTP servers listen on every interface,
@@ -103,7 +119,7 @@ def start_stock_cluster(folder: Path, workers: int, threads: int):
         processes.append(subprocess.Popen(
             [DASK, "worker", "--scheduler-file", str(file), "--nthreads", str(threads), "--host", "127.0.0.1",
              "--dashboard-address", "127.0.0.1:0", "--local-directory", str(folder / f"w{index}")],
-            stderr=subprocess.DEVNULL))
+            stderr=subprocess.DEVNULL, env=environment))
     address = json.loads(file.read_text())["address"]
     with Client(address) as client:
         client.wait_for_workers(workers, timeout=180)
@@ -117,8 +133,9 @@ def run_mode(mode: str, targets: Path, out: Path, budget: float, seed: int, sche
     kind, shape = mode.split(":")
     workers, threads = map(int, shape.split("x"))
     processes, options = [], {"workers": workers, "threads_per_worker": threads}
-    if kind == "cluster":
-        address, processes = start_stock_cluster(Path(tempfile.mkdtemp(prefix="bench-cluster-")), workers, threads)
+    if kind in ("cluster", "stock"):
+        address, processes = start_stock_cluster(Path(tempfile.mkdtemp(prefix="bench-cluster-")), workers, threads,
+                                                 recommended=kind == "cluster")
         options = {"scheduler": address}
     try:
         started = time.monotonic()
@@ -181,8 +198,9 @@ def main(argv=None) -> int:
                         help="stage-1 Adam steps per scan (default 600)")
     parser.add_argument("--time-budget", type=float, default=600.0, help="seconds per scan, a ceiling (default 600)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--modes", nargs="+", default=["sequential", "local:1x2", "local:2x1", "cluster:2x1"],
-                        help="sequential, local:WxT, cluster:WxT (default: all four on two cores)")
+    parser.add_argument("--modes", nargs="+",
+                        default=["sequential", "local:1x2", "local:2x1", "cluster:2x1", "stock:2x1"],
+                        help="sequential, local:WxT, cluster:WxT, stock:WxT (default: all five on two cores)")
     parser.add_argument("--out", type=Path, default=Path("bench_batch"))
     args = parser.parse_args(argv)
 
