@@ -210,6 +210,30 @@ def test_killed_client_rerun_finishes_only_the_rest_and_redoes_a_changed_target(
     assert statuses == {"Female/b.png": "inverted", "Male/Cheek/a.npy": "resumed"}
 
 
+def test_ctrl_c_stops_cleanly_with_every_finished_phantom_valid(stock_cluster, skin_levels, tmp_path,
+                                                                report_table):
+    """SIGINT (Ctrl-C) after the first scan: exit 130, the summary lists the rest as pending."""
+    names = make_targets(tmp_path / "targets", skin_levels)
+    (tmp_path / "targets/Extra").mkdir()
+    for index, levels in enumerate(skin_levels[:2]):  # more scans than workers: some are left when stopped
+        np.save(tmp_path / f"targets/Extra/{index}.npy", levels)
+        names.append(f"Extra/{index}.npy")
+    out = tmp_path / "out"
+    batch = subprocess.Popen(batch_command(tmp_path / "targets", out, "--scheduler", stock_cluster.address),
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        wait_for(lambda: sorted(out.rglob("*.report.json")), 300, "a first finished scan", batch)
+        batch.send_signal(signal.SIGINT)
+        status = batch.wait(timeout=60)
+    finally:
+        if batch.poll() is None:
+            batch.kill()
+            batch.wait()
+    assert status == 130, batch.stderr.read().decode()[-3000:]
+    statuses = {name: row["status"] for name, row in check_outputs(out, names, report_table)["scans"].items()}
+    assert {"inverted", "pending"} == set(statuses.values()), statuses
+
+
 def other_addresses() -> list[str]:
     """This machine's non-loopback IPv4 addresses."""
     import psutil
