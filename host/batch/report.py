@@ -158,6 +158,7 @@ th { background: #eee; position: sticky; top: 0; }
 table.sortable th { cursor: pointer; } th[aria-sort="ascending"]::after { content: " \\25B2"; }
 th[aria-sort="descending"]::after { content: " \\25BC"; }
 tr.failed td { background: #fde8e8; } tr.pending td { color: #888; }
+.wide { overflow-x: auto; }
 section { margin: 2em 0; border-top: 1px solid #ccc; } section img { max-width: 100%; display: block; }
 .meta { color: #555; }
 """
@@ -220,11 +221,11 @@ def report_html(summary: dict, images: dict[str, tuple[bytes, bytes]]) -> str:
         parts += ['<table class="medians"><thead><tr><th>median</th>',
                   *(f"<th>{c}</th>" for c in COMPONENTS), "</tr></thead><tbody><tr><td>all scans</td>",
                   *(f"<td>{summary['medians'][c]:.5f}</td>" for c in COMPONENTS), "</tr></tbody></table>"]
-    parts += ['<table class="sortable" id="scans"><thead><tr>',
+    parts += ['<div class="wide"><table class="sortable" id="scans"><thead><tr>',
               *(f"<th>{column}</th>" for column in COLUMNS), "</tr></thead><tbody>"]
     for row in rows.values():
         parts += [f'<tr class="{html.escape(row["status"])}">', *(_cell(row, column) for column in COLUMNS), "</tr>"]
-    parts.append("</tbody></table>")
+    parts.append("</tbody></table></div>")
     if len(images) < sum(row["status"] in DONE for row in rows.values()):
         parts.append(f"<p>Panels of the {len(images)} lowest-scoring scans; every scan's are in its "
                      "NAME.panel.png and NAME.score.png.</p>")
