@@ -87,15 +87,17 @@ class StockCluster:
         return Client(self.address, timeout=30)
 
     def close(self) -> None:
-        for process in [*self.workers.values(), self.scheduler]:
-            if process.poll() is None:
-                process.terminate()
-        for process in [*self.workers.values(), self.scheduler]:
-            try:
-                process.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        # Workers first: a worker whose scheduler is gone spends ~20 s trying to reach it before it exits.
+        for group in (list(self.workers.values()), [self.scheduler]):
+            for process in group:
+                if process.poll() is None:
+                    process.terminate()
+            for process in group:
+                try:
+                    process.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait()
 
 
 @pytest.fixture(scope="module")
