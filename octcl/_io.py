@@ -202,6 +202,29 @@ def _png_header(head: bytes, source: str) -> tuple[int, int, int, int]:
     return width, height, bit_depth, colour_type
 
 
+def read_at_most(path, limit: int, error: type[Exception], kind: str, too_large: str | None) -> bytes:
+    """At most ``limit + 1`` bytes of a file: more than ``limit`` tells the caller it is larger.
+
+    With ``too_large``, a file whose size is known to exceed ``limit`` is
+    refused before any of it is read (``"PATH: SIZE bytes, " + too_large``);
+    one of unknown size (a pipe) stops being read at ``limit + 1`` bytes
+    either way. Other errors are ``error("PATH: ...")`` too: missing, a
+    directory (not a ``kind``), unreadable.
+    """
+    try:
+        with open(path, "rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            if too_large is not None and size > limit:
+                raise error(f"{path}: {size:,} bytes, {too_large}")
+            return handle.read(limit + 1)
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, not a {kind}") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
 def read_image_bytes(path, kind: str = "PNG file") -> bytes:
     """The whole of an image or ``.npy`` file, at most :data:`MAX_IMAGE_FILE_BYTES` of it.
 
@@ -209,22 +232,13 @@ def read_image_bytes(path, kind: str = "PNG file") -> bytes:
     ------
     ImageFormatError
         Naming the file: missing, a directory, unreadable, or larger than
-        the limit (checked before reading).
+        the limit (checked before reading, :func:`read_at_most`).
     """
     path = Path(path)
-    try:
-        with open(path, "rb") as handle:
-            size = os.fstat(handle.fileno()).st_size
-            data = handle.read(MAX_IMAGE_FILE_BYTES + 1)  # files of unknown size (pipes) stop here too
-    except FileNotFoundError:
-        raise ImageFormatError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise ImageFormatError(f"{path}: is a directory, not a {kind}") from None
-    except OSError as exc:
-        raise ImageFormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    too_large = f"more than the {MAX_IMAGE_FILE_BYTES:,} an image octcl reads may have"
+    data = read_at_most(path, MAX_IMAGE_FILE_BYTES, ImageFormatError, kind, too_large)
     if len(data) > MAX_IMAGE_FILE_BYTES:
-        raise ImageFormatError(f"{path}: {max(size, len(data)):,} bytes, more than the {MAX_IMAGE_FILE_BYTES:,} "
-                               f"an image octcl reads may have")
+        raise ImageFormatError(f"{path}: {too_large}")
     return data
 
 

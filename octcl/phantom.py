@@ -40,14 +40,13 @@ from __future__ import annotations
 
 import codecs
 import io
-import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ._io import atomic_write
+from ._io import atomic_write, read_at_most
 from .config import DEFAULT_CONFIG, ScannerConfig
 
 
@@ -329,18 +328,7 @@ def _read_bytes(path: Path, max_rows: int, truncate: bool) -> tuple[bytes, bool]
     too_large = (f"more than {max_rows:,} rows take at {MAX_ROW_BYTES} bytes a row ({limit:,} bytes); "
                  f"the scanner reads only the first {max_rows:,} rows (number of scatterers in b-scan): "
                  f"use --truncate (Phantom.load(..., truncate=True)) to read only those")
-    try:
-        with open(path, "rb") as handle:
-            size = os.fstat(handle.fileno()).st_size
-            if size > limit and not truncate:
-                raise PhantomError(f"{path}: {size:,} bytes, {too_large}")
-            data = handle.read(limit + 1)  # files of unknown size (pipes) stop here too
-    except FileNotFoundError:
-        raise PhantomError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise PhantomError(f"{path}: is a directory, not a phantom file") from None
-    except OSError as exc:
-        raise PhantomError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    data = read_at_most(path, limit, PhantomError, "phantom file", None if truncate else too_large)
     if len(data) <= limit:
         return data, False
     if not truncate:
