@@ -298,6 +298,8 @@ def _npy_files(draw) -> bytes:
     return b"\x93NUMPY" + bytes(version) + length + text.encode("latin-1") + payload
 
 
+# NumPy parses a .npy header with ast.literal_eval, which warns about the odd escapes of generated headers.
+@pytest.mark.filterwarnings("ignore:invalid escape sequence:DeprecationWarning")
 def test_npy_reader_reads_or_names_the_file(fuzz_settings):
     """decode_scan_levels and decode_target of any bytes starting as a ``.npy``: a (256, 512) uint8 array, or an
     ImageFormatError starting with the file's name; nothing is unpickled."""
