@@ -202,27 +202,36 @@ def _png_header(head: bytes, source: str) -> tuple[int, int, int, int]:
     return width, height, bit_depth, colour_type
 
 
-def read_at_most(path, limit: int, error: type[Exception], kind: str, too_large: str | None) -> bytes:
-    """At most ``limit + 1`` bytes of a file: more than ``limit`` tells the caller it is larger.
+@contextlib.contextmanager
+def reading_errors(path, error: type[Exception], kind: str):
+    """Turn the OS's errors while reading ``path`` into ``error("PATH: ...")``: missing, a directory, unreadable.
 
-    With ``too_large``, a file whose size is known to exceed ``limit`` is
-    refused before any of it is read (``"PATH: SIZE bytes, " + too_large``);
-    one of unknown size (a pipe) stops being read at ``limit + 1`` bytes
-    either way. Other errors are ``error("PATH: ...")`` too: missing, a
-    directory (not a ``kind``), unreadable.
+    ``kind`` names what the file should have been (``"is a directory, not a
+    phantom file"``). Every reader of octcl's inputs words these the same way.
     """
     try:
-        with open(path, "rb") as handle:
-            size = os.fstat(handle.fileno()).st_size
-            if too_large is not None and size > limit:
-                raise error(f"{path}: {size:,} bytes, {too_large}")
-            return handle.read(limit + 1)
+        yield
     except FileNotFoundError:
         raise error(f"{path}: no such file") from None
     except IsADirectoryError:
         raise error(f"{path}: is a directory, not a {kind}") from None
     except OSError as exc:
         raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
+def read_at_most(path, limit: int, error: type[Exception], kind: str, too_large: str | None) -> bytes:
+    """At most ``limit + 1`` bytes of a file: more than ``limit`` tells the caller it is larger.
+
+    With ``too_large``, a file whose size is known to exceed ``limit`` is
+    refused before any of it is read (``"PATH: SIZE bytes, " + too_large``);
+    one of unknown size (a pipe) stops being read at ``limit + 1`` bytes
+    either way. Other errors as :func:`reading_errors`.
+    """
+    with reading_errors(path, error, kind), open(path, "rb") as handle:
+        size = os.fstat(handle.fileno()).st_size
+        if too_large is not None and size > limit:
+            raise error(f"{path}: {size:,} bytes, {too_large}")
+        return handle.read(limit + 1)
 
 
 def read_image_bytes(path, kind: str = "PNG file") -> bytes:

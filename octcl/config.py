@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-from ._io import MAX_IMAGE_PIXELS
+from ._io import MAX_IMAGE_PIXELS, reading_errors
 
 
 class ConfigError(ValueError):
@@ -99,14 +99,8 @@ class ScannerConfig:
         path = Path(path)
         parser = configparser.ConfigParser(interpolation=None)
         try:
-            with open(path, encoding="utf-8") as handle:
+            with reading_errors(path, ConfigError, "Configuration.ini file"), open(path, encoding="utf-8") as handle:
                 parser.read_file(handle)
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: no such file") from None
-        except IsADirectoryError:
-            raise ConfigError(f"{path}: is a directory, not a Configuration.ini file") from None
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
         except UnicodeDecodeError as exc:
             raise ConfigError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from None
         except configparser.Error as exc:
