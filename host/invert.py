@@ -95,6 +95,9 @@ class InvertResult:
         Peak resident memory of the process (ru_maxrss).
     stopped_by_deadline : bool
         Stage 3 was cut short by the time budget.
+    stop_reason : str
+        What ended stage 3 (:attr:`octcl.host.refine.RefineResult.stop_reason`):
+        ``schedule``, ``converged``, ``target score`` or ``deadline``.
     seed : int
     field_iterations : int
         Adam steps of stage 1.
@@ -126,6 +129,7 @@ class InvertResult:
     checkpoints: int
     peak_memory_mib: float
     stopped_by_deadline: bool
+    stop_reason: str
     seed: int
     field_iterations: int
     fixed_schedule: bool
@@ -295,7 +299,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
            progress=None, config: ScannerConfig = DEFAULT_CONFIG,
            schedule: RefineSchedule = RefineSchedule(), iterations: int | None = None,
            field_iterations: int = FIELD_ITERATIONS, threads: int | None = None,
-           name: str | None = None) -> InvertResult:
+           name: str | None = None, target_score: float | None = None) -> InvertResult:
     """Invert a target B-scan into a phantom file.
 
     Parameters
@@ -346,6 +350,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     name : str, optional
         The target's name in messages and the result; default: the path, or
         ``"target"`` for an array.
+    target_score : float, optional
+        End stage 3 as soon as an exact evaluation reaches this score.
 
     Returns
     -------
@@ -360,7 +366,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         checked before the work starts.
     ValueError
         A budget that is not a positive number, iterations beyond the
-        schedule, a thread or stage-1 iteration count below 1.
+        schedule, a thread or stage-1 iteration count below 1, a target
+        score outside (0, 1].
     TimeBudgetExceeded
         A fixed schedule did not end within the budget; the output then
         holds the best phantom scored so far (or nothing, if the budget ran
@@ -377,6 +384,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     for label, count in (("threads", threads), ("field_iterations", field_iterations)):
         if count is not None and not (isinstance(count, int) and count >= 1):
             raise ValueError(f"{label} must be a whole number ≥ 1, got {count!r}")
+    if target_score is not None and not (isinstance(target_score, (int, float)) and 0 < target_score <= 1):
+        raise ValueError(f"target_score must be a score in (0, 1], got {target_score!r}")
     fixed = iterations is not None
     if fixed:
         schedule = schedule.truncated(iterations)
@@ -433,7 +442,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         result = refine(phantom, target, schedule, deadline=None if fixed else deadline - FINAL_RESERVE_S,
                         kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score,
                         on_improvement=lambda improved, components: writer.offer(improved),
-                        ceiling=ceiling.ceiling if fixed else None, threads=threads)
+                        ceiling=ceiling.ceiling if fixed else None, threads=threads,
+                        target_score=target_score)
     except TimeBudgetExceeded as exc:
         if writer is not None:
             writer.close()
@@ -456,7 +466,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         components=result.components, initial_score=result.initial_components["mean"],
         scatterers=len(result.phantom), iterations=result.iterations, seconds=seconds,
         checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
-        stopped_by_deadline=result.stopped_by_deadline, seed=seed, field_iterations=fit.iterations,
+        stopped_by_deadline=result.stopped_by_deadline, stop_reason=result.stop_reason, seed=seed, field_iterations=fit.iterations,
         fixed_schedule=fixed, threads=threads,
         reproduce=f"--seed {seed} --iterations {result.iterations} --field-iterations {fit.iterations} "
                   f"--threads {FIXED_THREADS if threads is None else threads}")
@@ -468,8 +478,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
                          "field_iterations_planned": field_iterations, "field_threads": fit.threads,
                          "refine_threads": result.torch_threads,
                          "schedule": dataclasses.asdict(schedule), "config": dataclasses.asdict(config),
-                         "checkpoint_interval_s": CHECKPOINT_INTERVAL_S},
+                         "checkpoint_interval_s": CHECKPOINT_INTERVAL_S, "target_score": target_score},
             "refine_timings_s": result.timings_s,
+            "refine_cpu_s": result.cpu_s,
             "trace": trace,
         }
         with atomic_write(report_path, "w") as handle:

@@ -143,6 +143,19 @@ class RefineSchedule:
         Weights of the loss terms (the LPIPS ones apply in ``lpips`` phases).
     max_iterations : int, optional
         Stop after this many Adam steps, restarts included (:meth:`truncated`).
+    patience, min_gain : int or None, float
+        Adaptive stopping. The main run ends (skipping the rest of its
+        phases; the restarts begin from the best phantom) once the best
+        exact score has gained less than ``min_gain`` over its last
+        ``patience`` checkpoints; refinement ends once a restart has gained
+        less than ``min_gain`` over its parent, and while each gains the
+        last restart is repeated until the schedule's iterations are spent
+        (a scene that has converged stops, one that still gains keeps the
+        iterations the main run left). Both decisions follow the
+        exact scores alone, never the clock, so fixed-schedule runs stay
+        reproducible. ``patience=None`` runs every phase and restart to its
+        length (:meth:`fixed_length`, the schedule before adaptive
+        stopping). Why these values: see the module docstring.
     """
 
     phases: tuple[Phase, ...] = (Phase(20, 0.002, 0.05), Phase(140, 0.002, 0.02),
@@ -155,6 +168,8 @@ class RefineSchedule:
     min_log_energy: float = math.log(1e-20)
     loss_weights: LossWeights = field(default_factory=LossWeights)
     max_iterations: int | None = None
+    patience: int | None = 2
+    min_gain: float = 1e-5
 
     def __post_init__(self):
         if self.score_every < 1:
@@ -165,6 +180,14 @@ class RefineSchedule:
             raise ValueError(f"min_log_energy must be below ln 100, got {self.min_log_energy}")
         if self.max_iterations is not None and self.max_iterations < 0:
             raise ValueError(f"max_iterations must be ≥ 0, got {self.max_iterations}")
+        if self.patience is not None and not (isinstance(self.patience, int) and self.patience >= 1):
+            raise ValueError(f"patience must be a whole number ≥ 1 or None, got {self.patience!r}")
+        if not self.min_gain >= 0:
+            raise ValueError(f"min_gain must be ≥ 0, got {self.min_gain}")
+
+    def fixed_length(self) -> "RefineSchedule":
+        """This schedule without adaptive stopping: every phase and restart runs its whole length."""
+        return dataclasses.replace(self, patience=None)
 
     @classmethod
     def published(cls) -> "RefineSchedule":
@@ -178,7 +201,7 @@ class RefineSchedule:
         """
         return cls(phases=(Phase(800, 0.002, 0.02), Phase(200, 0.0005, 0.005)),
                    restarts=tuple(Phase(100, lr, 10 * lr) for lr in (0.002, 0.002, 0.001, 0.0005)),
-                   score_every=50)
+                   score_every=50, patience=None)
 
     @property
     def total_iterations(self) -> int:
@@ -267,8 +290,17 @@ class RefineResult:
     timings_s : dict
         Total seconds in each part of the iteration (``set_phantom``,
         ``forward``, ``loss``, ``adjoint``, ``adam``, ``exact_score``).
+    cpu_s : dict
+        The process's CPU seconds (all its threads: OpenCL's, torch's, the
+        checkpoint writer's) during each of those parts; cpu_s / timings_s
+        is the number of cores busy in a part.
     stopped_by_deadline : bool
         The deadline cut the schedule short.
+    stop_reason : str
+        What ended the refinement: ``schedule`` (its phases and restarts, or
+        ``max_iterations``, ran out), ``converged`` (a restart gained less
+        than :attr:`RefineSchedule.min_gain`), ``target score`` or
+        ``deadline``.
     torch_threads : int
         CPU threads the loss ran with at the end (:class:`_ThreadChooser`).
     """
@@ -279,7 +311,9 @@ class RefineResult:
     iterations: int
     trace: list
     timings_s: dict
+    cpu_s: dict
     stopped_by_deadline: bool
+    stop_reason: str
     torch_threads: int
 
 
@@ -417,12 +451,14 @@ class _Refiner:
                                               (False, schedule.loss_weights.without_lpips()))}
         self.clock = clock
         self.timings = dict.fromkeys(("set_phantom", "forward", "loss", "adjoint", "adam", "exact_score"), 0.0)
+        self.cpu_seconds = dict.fromkeys(self.timings, 0.0)
         self.threads = _ThreadChooser(_available_cores()) if threads is None else _FixedThreads(threads)
 
     def _timed(self, name, function, *args, **kwargs):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         result = function(*args, **kwargs)
         self.timings[name] += time.perf_counter() - start
+        self.cpu_seconds[name] += time.process_time() - cpu_start
         return result
 
     def render(self, z_um, log_energy, for_adjoint: bool) -> Rendering:
@@ -437,20 +473,21 @@ class _Refiner:
         """(loss value, ∂loss/∂u, ∂loss/∂z) of the last :meth:`render` (with for_adjoint)."""
         self.threads.before_call()
         start = time.perf_counter()
-        value = self.losses[lpips](rendering.display)
-        seconds = time.perf_counter() - start
-        self.threads.after_call(lpips, seconds)
-        self.timings["loss"] += seconds
+        value = self._timed("loss", self.losses[lpips], rendering.display)
+        self.threads.after_call(lpips, time.perf_counter() - start)
         grad_u, grad_z = self._timed("adjoint", self.kernels.adjoint, display_vjp(rendering, value.grad_display))
         return value, grad_u, grad_z
 
     def score(self, rendering: Rendering) -> dict:
         start = time.perf_counter()
-        components = self.exact_score(rendering.levels)
-        seconds = time.perf_counter() - start
-        self.timings["exact_score"] += seconds
-        self.clock.record("score", seconds)
+        components = self._timed("exact_score", self.exact_score, rendering.levels)
+        self.clock.record("score", time.perf_counter() - start)
         return components
+
+    def step(self, adam: _Adam, params, grads, lrs) -> None:
+        """An Adam step on (z, u), projected back onto the constraints."""
+        self._timed("adam", adam.step, params, grads, lrs)
+        self.constrain(*params)
 
     def constrain(self, z_um, log_energy) -> None:
         """Project onto 0 ≤ z ≤ Nz·Δz and ln E_floor ≤ u ≤ ln 100, in place."""
@@ -475,7 +512,8 @@ class _Refiner:
 def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = RefineSchedule(),
            deadline: float | None = None, kernels=None, config: ScannerConfig = DEFAULT_CONFIG,
            progress=None, on_improvement=None, exact_score: ExactScore | None = None,
-           ceiling: float | None = None, threads: int | None = None) -> RefineResult:
+           ceiling: float | None = None, threads: int | None = None,
+           target_score: float | None = None) -> RefineResult:
     """Refine depths and energies of ``phantom`` towards the target scan.
 
     Parameters
@@ -512,6 +550,8 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         torch's thread count for the whole refinement (loss and exact
         scores). By default it is chosen by timing (:class:`_ThreadChooser`),
         which makes the result depend on the machine's load.
+    target_score : float, optional
+        Stop as soon as an exact evaluation reaches this score (in (0, 1]).
 
     Returns
     -------
@@ -529,9 +569,13 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     ------
     TimeBudgetExceeded
         Past ``ceiling``.
+    ValueError
+        ``target_score`` outside (0, 1].
     """
     started = time.monotonic()
     clock = _Clock(deadline, ceiling)
+    if target_score is not None and not (isinstance(target_score, (int, float)) and 0 < target_score <= 1):
+        raise ValueError(f"target_score must be a score in (0, 1], got {target_score!r}")
     if kernels is None:
         from octcl._scanner_op import ScannerKernels
 
@@ -546,7 +590,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     refiner.round_as_saved(z_um, log_energy)
 
     trace, total = [], schedule.total_iterations
-    stopped = False
+    stop_reason = None  # set when something other than the schedule's end stops the refinement
     iterations = 0
 
     def as_phantom(z, u):
@@ -561,24 +605,33 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
             progress(RefineProgress(stage, iterations, total, *last_score, best.score))
 
     def consider(components, stage, iteration, z, u):
-        nonlocal best, last_score
+        """Keep (z, u) if it beats the best; stop everything once the target score is reached."""
+        nonlocal best, last_score, stop_reason
         last_score = (components["mean"], time.monotonic())
         if components["mean"] > best.score:
             best = Checkpoint(z.copy(), u.copy(), components, stage, iteration)
             if on_improvement:
                 on_improvement(as_phantom(z, u), components)
+        if target_score is not None and best.score >= target_score:
+            stop_reason = "target score"
 
     def run(stage, phases, z, u, checkpoints):
-        """Adam from (z, u) through ``phases``; score after the given step counts and at the end."""
-        nonlocal stopped, iterations
+        """Adam from (z, u) through ``phases``; score after the given step counts and at the end.
+
+        Returns True, early and without scoring again, when the run has
+        stalled (:attr:`RefineSchedule.patience`); returns early too when
+        ``stop_reason`` is set.
+        """
+        nonlocal stop_reason, iterations
         adam = _Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
         # The steps of these phases that the schedule's iteration count still allows.
         plan = [phase for phase in phases for _ in range(phase.iterations)][:total - iterations]
+        best_after = [best.score]  # the best score at the run's start and after each of its checkpoints
         for step in range(len(plan) + 1):
             last = step == len(plan)
             clock.check_ceiling(f"in stage 3 ({stage}) after {iterations} of {total} iterations")
             if not last and not clock.fits("render", "loss_adjoint", "adam", "render", "score"):
-                stopped, last = True, True
+                stop_reason, last = "deadline", True
             if last:  # score the final iterate (not rendered yet), if that still fits
                 if step and clock.fits("render", "score"):
                     refiner.round_as_saved(z, u)
@@ -588,27 +641,32 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                                   "iteration": step, "loss": None, "score": components["mean"]})
                     consider(components, stage, step, z, u)
                     report(stage)
-                return
+                return False
             scored = step in checkpoints and step > 0 and clock.fits("score")
             if scored:
                 refiner.round_as_saved(z, u)
             rendering = refiner.render(z, u, for_adjoint=True)
-            start = time.perf_counter()
-            value, grad_u, grad_z = refiner.gradients(rendering, plan[step].lpips)
-            clock.record("loss_adjoint", time.perf_counter() - start)
             entry = {"time_s": time.monotonic() - started, "stage": stage, "iteration": step,
-                     "loss": value.loss, "score": None}
+                     "loss": None, "score": None}
+            trace.append(entry)
             if scored:
                 components = refiner.score(rendering)
                 entry["score"] = components["mean"]
                 consider(components, stage, step, z, u)
-            trace.append(entry)
+                best_after.append(best.score)
+                patience = schedule.patience
+                stalled = bool(patience and len(best_after) > patience
+                               and best_after[-1] - best_after[-1 - patience] < schedule.min_gain)
+                if stop_reason or stalled:
+                    report(stage)
+                    return stalled
             start = time.perf_counter()
-            adam.step((z, u), (grad_z, grad_u), (plan[step].lr_z_um, plan[step].lr_u))
-            refiner.constrain(z, u)
-            seconds = time.perf_counter() - start
-            refiner.timings["adam"] += seconds
-            clock.record("adam", seconds)
+            value, grad_u, grad_z = refiner.gradients(rendering, plan[step].lpips)
+            clock.record("loss_adjoint", time.perf_counter() - start)
+            entry["loss"] = value.loss
+            start = time.perf_counter()
+            refiner.step(adam, (z, u), (grad_z, grad_u), (plan[step].lr_z_um, plan[step].lr_u))
+            clock.record("adam", time.perf_counter() - start)
             iterations += 1
             report(stage)
 
@@ -622,19 +680,32 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         trace.append({"time_s": last_score[1] - started, "stage": "initial", "iteration": 0,
                       "loss": None, "score": initial["mean"]})
         report("refine")
-        run("refine", schedule.phases, z_um, log_energy,
-            set(range(schedule.score_every, main_length, schedule.score_every)))
-        for index, restart in enumerate(schedule.restarts, start=1):
-            if stopped or iterations == total:
-                break
+        if target_score is not None and initial["mean"] >= target_score:
+            stop_reason = "target score"
+        else:
+            stalled = run("refine", schedule.phases, z_um, log_energy,
+                          set(range(schedule.score_every, main_length, schedule.score_every)))
+            if stalled and not schedule.restarts:
+                stop_reason = "converged"
+        # The restarts in order; with adaptive stopping the last is repeated
+        # while each gains, until the iterations the main run left are spent.
+        index = 0
+        while schedule.restarts and not stop_reason and iterations < total and (
+                schedule.patience or index < len(schedule.restarts)):
+            restart = schedule.restarts[min(index, len(schedule.restarts) - 1)]
+            index += 1
+            parent = best.score
             run(f"restart {index}", (restart,), best.z_um.copy(), best.log_energy.copy(),
                 {restart.iterations // 2})
+            if schedule.patience and not stop_reason and best.score - parent < schedule.min_gain:
+                stop_reason = "converged"
     finally:
         torch.set_num_threads(previous_threads)
 
     return RefineResult(phantom=as_phantom(best.z_um, best.log_energy), components=best.components,
                         initial_components=initial, iterations=iterations, trace=trace,
-                        timings_s=dict(refiner.timings), stopped_by_deadline=stopped,
+                        timings_s=dict(refiner.timings), cpu_s=dict(refiner.cpu_seconds),
+                        stopped_by_deadline=stop_reason == "deadline", stop_reason=stop_reason or "schedule",
                         torch_threads=refiner.threads.threads)
 
 

@@ -174,9 +174,9 @@ def _invert_lines(result: dict) -> list[str]:
     seconds = result["seconds"]
     stages = ", ".join(f"{name} {format_seconds(seconds[name])}"
                        for name in ("field", "decode", "setup", "refine") if name in seconds)
-    ending = "fixed schedule" if result["fixed_schedule"] else \
-        "deadline mode, stopped by the time budget" if result["stopped_by_deadline"] else \
-        "deadline mode, schedule completed"
+    ending = ("fixed schedule, " if result["fixed_schedule"] else "deadline mode, ") + {
+        "schedule": "schedule completed", "converged": "stopped: converged",
+        "target score": "stopped: target score reached", "deadline": "stopped by the time budget"}[result["stop_reason"]]
     threads = result["threads"] if result["threads"] is not None else "chosen by timing"
     return [f"{result['output']}: {result['scatterers']:,} scatterers, score {result['score']:.5f} "
             f"(initial_score after stages 1-2: {result['initial_score']:.5f})",
@@ -234,7 +234,7 @@ def _cmd_invert(args) -> int:
     from .host.invert import TimeBudgetExceeded, invert
 
     # The fixed schedule's options, for one scan or each scan of a batch (docs/reproducibility.md).
-    schedule = {name: getattr(args, name) for name in ("iterations", "field_iterations", "threads")
+    schedule = {name: getattr(args, name) for name in ("iterations", "field_iterations", "threads", "target_score")
                 if getattr(args, name) is not None}
     if args.target:
         given = [f"--{name.replace('_', '-')}" for name in _BATCH_ONLY if getattr(args, name) not in (None, False)]
@@ -366,6 +366,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, metavar="T",
                    help="torch CPU threads for the whole run (default with --iterations: 1; without: chosen "
                         "by timing)")
+    p.add_argument("--target-score", type=float, metavar="S",
+                   help="stop refining once the exact score reaches S (default: when it stops improving)")
     p.add_argument("--report", help="JSON report: score trace against time, per stage")
     p.add_argument("--config", help="Configuration.ini")
     batch = p.add_argument_group(

@@ -80,11 +80,19 @@ def development_set(out: Path, skin: int) -> dict[str, Path]:
     return targets
 
 
-def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None) -> None:
+#: ``--schedules``: stage 3's schedule by name. ``fixed-length`` is the
+#: default's phases and restarts, each run to its whole length (the schedule
+#: before adaptive stopping).
+SCHEDULES = {"default": "RefineSchedule()", "fixed-length": "RefineSchedule().fixed_length()"}
+
+
+def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None,
+               schedule: str = "default") -> None:
     """invert() in a child process, so that ru_maxrss is this run's peak."""
-    code = ("import sys; from octcl.host.invert import invert; "
+    code = ("import sys; from octcl.host.invert import invert; from octcl.host.refine import RefineSchedule; "
             "invert(sys.argv[1], sys.argv[2], time_budget_s=float(sys.argv[4]), seed=int(sys.argv[5]), "
-            "report_path=sys.argv[3], iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]))")
+            "report_path=sys.argv[3], iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]), "
+            f"schedule={SCHEDULES[schedule]})")
     subprocess.run([sys.executable, "-c", code, str(target), str(output), str(report), str(budget), str(seed),
                     str(iterations)], check=True)
 
@@ -100,6 +108,22 @@ def spread(scores: list[float]) -> dict:
             "max": float(max(scores)), "min_significant_difference": bound}
 
 
+def time_to_scores(trace: list[dict], final: float) -> dict:
+    """Seconds from the run's start until its best exact score first reached each of :data:`SCORE_LEVELS`.
+
+    ``final`` is the run's final score; its level is final − 1e−4. None where
+    never reached.
+    """
+    levels = {**{f"{level:g}": level for level in SCORE_LEVELS}, "final-1e-4": final - 1e-4}
+    scored = [(entry["time_s"], entry["score"]) for entry in trace if entry.get("score") is not None]
+    return {label: next((t for t, score in scored if score >= level), None) for label, level in levels.items()}
+
+
+#: Scores whose time to reach :func:`time_to_scores` reports: the published
+#: global score and two above it.
+SCORE_LEVELS = (0.9947, 0.998, 0.999)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--time-budget", type=float, default=600.0,
@@ -109,6 +133,9 @@ def main(argv=None) -> int:
     parser.add_argument("--scans", nargs="*", help="names to run (default: all of the set)")
     parser.add_argument("--skin", type=int, default=2, help="synthetic skin targets to add (default 2)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds per scan (default 0 1 2)")
+    parser.add_argument("--schedules", nargs="+", choices=sorted(SCHEDULES), default=["default"],
+                        help="stage-3 schedules to compare, run one after the other on each scan and seed "
+                             "(default: default)")
     args = parser.parse_args(argv)
 
     targets = development_set(args.out, args.skin)
@@ -121,56 +148,74 @@ def main(argv=None) -> int:
     unknown = sorted(set(names) - set(targets))
     if unknown:
         parser.error(f"unknown scans {unknown}; known: {sorted(targets)}")
+    several = len(args.schedules) > 1
     rows, reports = {}, {}
     for name in names:
         target = targets[name]
         target_array = read_target(target)
         exact_score = ExactScore(target_array)
         for seed in args.seeds:
-            run = f"{name}_s{seed}"
-            output, report_path = args.out / f"{run}.txt", args.out / f"{run}.report.json"
-            start = time.monotonic()
-            run_invert(target, output, report_path, args.time_budget, seed, args.iterations)
-            wall = time.monotonic() - start
-            report = reports[run] = json.loads(report_path.read_text())
-            levels = render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels
-            write_grey_png(args.out / f"{run}_render.png", levels)
-            components = exact_score(levels)
-            if seed == args.seeds[0]:
-                with atomic_write(args.out / f"{name}_panel.png") as handle:
-                    handle.write(comparison_panel(target_array, levels,
-                                                  f"{name}, seed {seed}: score {components['mean']:.5f} after "
-                                                  f"{report['seconds']['total']:.0f} s"))
-            rows[run] = {"scan": name, "seed": seed, **{c: components[c] for c in COMPONENTS},
-                         "mean": components["mean"], "initial_score": report["initial_score"],
-                         "iterations": report["iterations"], "field_iterations": report["field_iterations"],
-                         "seconds": report["seconds"]["total"], "wall_s": wall,
-                         "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
-            print(f"{run}: {components['mean']:.6f} (stages 1-2: {report['initial_score']:.6f}), "
-                  f"{report['iterations']} iterations, {report['seconds']['total']:.0f} s, "
-                  f"{report['peak_memory_mib']:.0f} MiB", flush=True)
+            for schedule in args.schedules:
+                run = f"{name}_{schedule}_s{seed}" if several else f"{name}_s{seed}"
+                output, report_path = args.out / f"{run}.txt", args.out / f"{run}.report.json"
+                start = time.monotonic()
+                run_invert(target, output, report_path, args.time_budget, seed, args.iterations, schedule)
+                wall = time.monotonic() - start
+                report = reports[run] = json.loads(report_path.read_text())
+                levels = render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels
+                write_grey_png(args.out / f"{run}_render.png", levels)
+                components = exact_score(levels)
+                if seed == args.seeds[0] and schedule == args.schedules[0]:
+                    with atomic_write(args.out / f"{name}_panel.png") as handle:
+                        handle.write(comparison_panel(target_array, levels,
+                                                      f"{name}, seed {seed}: score {components['mean']:.5f} after "
+                                                      f"{report['seconds']['total']:.0f} s"))
+                reached = time_to_scores(report["trace"], components["mean"])
+                rows[run] = {"scan": name, "schedule": schedule, "seed": seed,
+                             **{c: components[c] for c in COMPONENTS},
+                             "mean": components["mean"], "initial_score": report["initial_score"],
+                             "iterations": report["iterations"], "field_iterations": report["field_iterations"],
+                             "stop_reason": report.get("stop_reason"),
+                             "seconds": report["seconds"]["total"], "wall_s": wall,
+                             **{f"seconds_to_{label}": value for label, value in reached.items()},
+                             "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
+                print(f"{run}: {components['mean']:.6f} (stages 1-2: {report['initial_score']:.6f}), "
+                      f"{report['iterations']} iterations ({report.get('stop_reason')}), "
+                      f"{report['seconds']['total']:.0f} s, {report['peak_memory_mib']:.0f} MiB", flush=True)
 
-    def global_score(seed):  # mean of the 8 per-component medians over the scans, for one seed
-        runs = [row for row in rows.values() if row["seed"] == seed]
+    def global_score(schedule, seed):  # mean of the 8 per-component medians over the scans, for one seed
+        runs = [row for row in rows.values() if row["seed"] == seed and row["schedule"] == schedule]
         return float(np.mean([np.median([row[c] for row in runs]) for c in COMPONENTS]))
 
-    spreads = {name: spread([row["mean"] for row in rows.values() if row["scan"] == name]) for name in names}
-    spreads["global"] = spread([global_score(seed) for seed in args.seeds])
+    spreads = {}
+    for schedule in args.schedules:
+        of = [row for row in rows.values() if row["schedule"] == schedule]
+        for name in names:
+            spreads[schedule, name] = spread([row["mean"] for row in of if row["scan"] == name])
+        spreads[schedule, "global"] = spread([global_score(schedule, seed) for seed in args.seeds])
+        spreads[schedule, "median_seconds"] = spread([float(np.median([row["seconds"] for row in of
+                                                                       if row["seed"] == seed]))
+                                                      for seed in args.seeds])
     summary = {"time_budget_s": args.time_budget, "iterations": args.iterations, "seeds": args.seeds,
-               "runs": rows, "spread": spreads}
+               "schedules": args.schedules, "runs": rows,
+               "spread": {f"{schedule}/{name}": values for (schedule, name), values in spreads.items()}}
     with atomic_write(args.out / "bench.json", "w") as handle:
         json.dump(summary, handle, indent=1)
-    columns = ["scan", "seed", *COMPONENTS, "mean", "initial_score", "iterations", "field_iterations", "seconds",
-               "wall_s", "peak_memory_mib", "load_average"]
+    columns = ["scan", "schedule", "seed", *COMPONENTS, "mean", "initial_score", "iterations", "field_iterations",
+               "stop_reason", "seconds", "wall_s", *[key for key in next(iter(rows.values())) if
+                                                     key.startswith("seconds_to_")],
+               "peak_memory_mib", "load_average"]
     write_csv(args.out / "bench.csv", columns, rows.values())
-    write_csv(args.out / "spread.csv", ["scan", "n", "mean", "std", "min", "max", "min_significant_difference"],
-              [{"scan": name, **values} for name, values in spreads.items()])
+    write_csv(args.out / "spread.csv",
+              ["schedule", "scan", "n", "mean", "std", "min", "max", "min_significant_difference"],
+              [{"schedule": schedule, "scan": name, **values} for (schedule, name), values in spreads.items()])
     with atomic_write(args.out / "score_vs_time.png") as handle:
         handle.write(score_plot({run: report["trace"] for run, report in reports.items()},
                                 "best exact score against time", size=(9, 5.6)))
-    for name, values in spreads.items():
-        print(f"{name}: {values['mean']:.6f} ± {values['std']:.1e} (min {values['min']:.6f}, max {values['max']:.6f}, "
-              f"n {values['n']}); significant difference > {values['min_significant_difference']:.1e}")
+    for (schedule, name), values in spreads.items():
+        print(f"{schedule} {name}: {values['mean']:.6f} ± {values['std']:.1e} (min {values['min']:.6f}, "
+              f"max {values['max']:.6f}, n {values['n']}); significant difference > "
+              f"{values['min_significant_difference']:.1e}")
     return 0
 
 

@@ -163,6 +163,7 @@ def slow_clock(monkeypatch):
         def reading():
             return start + 1000.0 * next(readings)
 
-        monkeypatch.setattr(module, "time", types.SimpleNamespace(monotonic=reading, perf_counter=reading))
+        monkeypatch.setattr(module, "time", types.SimpleNamespace(monotonic=reading, perf_counter=reading,
+                                                                  process_time=reading))
 
     return install

@@ -26,7 +26,7 @@ JSON_KEYS = {
     "score": {"ref", "pred", *COMPONENT_KEYS, "seconds"},
     "score --refs": {"refs", "preds", "scans", "medians", "score", "csv", "seconds"},
     "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
-               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "seed", "field_iterations",
+               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "stop_reason", "seed", "field_iterations",
                "fixed_schedule", "threads", "reproduce", "report"},
     "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "octcl_version", "time_budget_s",
                          "seed", "options", "cluster", "wall_s"},
@@ -134,6 +134,7 @@ def test_render_numpy_backend_and_truncate(tmp_path, capsys):
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--iterations", "401"],
      "iterations must be a whole number in [0, 400]"),
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--threads", "0"], "threads must be a whole number ≥ 1"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--target-score", "1.5"], "target_score must be a score in (0, 1]"),
     # Images that claim more pixels than octcl reads are refused by their header, before decoding.
     (["maps", "{tmp}/huge.png"], "huge.png: image is 100000x100000 (rows x columns); octcl reads images of 1 to"),
     (["score", "{tmp}/huge.png", "{tmp}/huge.png"], "huge.png: image is 100000x100000 (rows x columns), expected"),

@@ -196,7 +196,7 @@ def test_constraints_hold_after_steps(stage2_phantom, layers_target):
 
 
 def test_deadline_is_respected(stage2_phantom, layers_target):
-    schedule = RefineSchedule(phases=(Phase(10_000, 0.01, 0.02),), restarts=(), score_every=5)
+    schedule = RefineSchedule(phases=(Phase(10_000, 0.01, 0.02),), restarts=(), score_every=5, patience=None)
     start = time.monotonic()
     result = refine(stage2_phantom, layers_target, schedule, deadline=start + 15.0)
     elapsed = time.monotonic() - start
@@ -207,11 +207,62 @@ def test_deadline_is_respected(stage2_phantom, layers_target):
     assert result.components["mean"] >= result.initial_components["mean"]
 
 
+def test_a_stalled_run_stops(stage2_phantom, layers_target):
+    """Zero learning rates never gain: the main run ends at its first checkpoint, then one restart.
+
+    With ``patience`` 1 the main run ends at its checkpoint at step 2, where
+    the best has gained nothing, and the restarts begin from the best
+    phantom; the first stalls the same way at its half-way checkpoint and
+    has gained nothing over its parent, so the second is skipped. Without
+    adaptive stopping every step runs.
+    """
+    still = Phase(6, 0.0, 0.0, lpips=False)
+    schedule = RefineSchedule(phases=(still,), restarts=(Phase(4, 0.0, 0.0, lpips=False), still),
+                              score_every=2, patience=1)
+    result = refine(stage2_phantom, layers_target, schedule, threads=1)
+    assert result.iterations == 2 + 2 and result.stop_reason == "converged"
+    scored = [(entry["stage"], entry["iteration"]) for entry in result.trace if entry["score"] is not None]
+    assert scored == [("initial", 0), ("refine", 2), ("restart 1", 2)]
+    assert result.components == result.initial_components
+    whole = refine(stage2_phantom, layers_target, schedule.fixed_length().truncated(6 + 2), threads=1)
+    assert whole.iterations == 6 + 2 and whole.stop_reason == "schedule"
+    assert max(entry["iteration"] for entry in whole.trace if entry["stage"] == "refine") == 6
+    # Restarts that gain are repeated until the iterations the stalled main
+    # run left are spent.
+    gaining = RefineSchedule(phases=(still,), restarts=(Phase(2, 0.01, 0.02, lpips=False),), score_every=2,
+                             patience=1, min_gain=1e-12)
+    repeated = refine(stage2_phantom, layers_target, gaining, threads=1)
+    assert repeated.iterations == 2 + 3 * 2 == gaining.total_iterations and repeated.stop_reason == "schedule"
+    assert {entry["stage"] for entry in repeated.trace} == {"initial", "refine", "restart 1", "restart 2", "restart 3"}
+    assert repeated.components["mean"] > repeated.initial_components["mean"]
+
+
+def test_target_score_stops_the_refinement(stage2_phantom, layers_target):
+    schedule = RefineSchedule(phases=(Phase(30, 0.01, 0.02, lpips=False),), restarts=(), score_every=2)
+    reached = refine(stage2_phantom, layers_target, schedule, threads=1, target_score=0.01)
+    assert reached.iterations == 0 and reached.stop_reason == "target score"
+    # A target just above the start: the first checkpoint that reaches it ends the run.
+    first = refine(stage2_phantom, layers_target, schedule.truncated(2), threads=1)
+    assert first.components["mean"] > first.initial_components["mean"]
+    target = (first.initial_components["mean"] + first.components["mean"]) / 2
+    result = refine(stage2_phantom, layers_target, schedule, threads=1, target_score=target)
+    assert result.iterations == 2 and result.stop_reason == "target score"
+    assert result.components == first.components
+    for bad in (0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="target_score"):
+            refine(stage2_phantom, layers_target, schedule, target_score=bad)
+
+
 def test_schedule_checks():
     with pytest.raises(ValueError, match="iterations"):
         Phase(-1, 0.01, 0.01)
     with pytest.raises(ValueError, match="score_every"):
         RefineSchedule(score_every=0)
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError, match="patience"):
+            RefineSchedule(patience=bad)
+    with pytest.raises(ValueError, match="min_gain"):
+        RefineSchedule(min_gain=float("nan"))
     published = RefineSchedule.published()
     assert published.total_iterations == 1400
     assert [restart.lr_z_um for restart in published.restarts] == [0.002, 0.002, 0.001, 0.0005]
