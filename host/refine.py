@@ -33,6 +33,23 @@ a µm. Measured from stages 1–2 of orange.png (exact score 0.97746; 40 or
   (0.0005, 0.005) / (0, 0.01) gave 0.99912 / 0.99937 / 0.99943 / 0.99931
   (from 0.99920), hence the default's lower rates after 160 iterations.
 
+Adaptive stopping (:attr:`RefineSchedule.patience`, ``min_gain``). On
+orange.png, with the whole 400-iteration schedule (``python
+scripts/bench_invert.py --time-budget 600 --seeds 0 --scans orange --skin 0``,
+the machine busy with nothing else; 545 s, 1.27 s an iteration), the main
+run's best came at iteration 120 (0.99915); the next 160 iterations, 210 s,
+never beat it (0.99893–0.99912); then the restarts from that best phantom at
+lower rates gained 2.9e−4 (restart 1) and 5.5e−5 (restart 2). So time spent
+after the main run has stalled buys nothing the restarts would not give
+sooner, and a restart that still gains is worth another. Hence: the main
+run ends after ``patience`` = 2 checkpoints (40 iterations) without a gain
+of ``min_gain`` = 1e−5, a third of the least difference that three seeds
+tell from noise on one scan (6e−5 to 2e−4, ``docs/benchmarks.md``); the
+restarts follow, the last repeated while each gains at least ``min_gain``,
+within the schedule's 400 iterations; and the first restart that gains
+less ends the refinement. The comparison with the whole schedule on the
+development set is in ``docs/benchmarks.md`` ("Adaptive stopping").
+
 The loss only stands in for the score, so progress is judged by the exact
 score (:class:`octcl.host.loss.ExactScore`, the mean of the eight official
 components of the rendered 8-bit scan). It is evaluated at checkpoints, and

@@ -31,11 +31,23 @@ Writes, in ``--out``:
   per-component medians over the scans, one per seed), the seeds' mean,
   standard deviation, minimum, maximum and ``min_significant_difference``;
 - ``bench.json``: all of it;
-- ``score_vs_time.png``: exact score against wall time, from the traces.
+- ``score_vs_time.png``: per scan, the best exact score against wall time
+  of each run, from the traces;
+- ``comparison.md``: per run the score, seconds, iterations and what ended
+  stage 3; with several ``--schedules``, each one's score difference and
+  time ratio to the first, its global score and median seconds; the
+  seconds each run took to reach 0.9947, 0.998, 0.999 and its final score
+  − 1e−4; and stage 3's time per iteration, part by part, in wall and CPU
+  seconds (``--summarise`` writes it again from the files).
 
-Example::
+``--schedules fixed-length default`` runs, on each scan and seed, the
+schedule before adaptive stopping and then the default one, so that both
+meet the same machine load.
+
+Examples::
 
     python scripts/bench_invert.py --time-budget 600 --scans Scan_Exp2_Layers_A orange --seeds 0 1 2
+    python scripts/bench_invert.py --seeds 0 --skin 3 --schedules fixed-length default --out OUT
 """
 
 from __future__ import annotations
@@ -53,7 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from octcl._io import atomic_write, write_grey_png
-from octcl.host.batch.report import comparison_panel, score_plot
+from octcl.host.batch.report import comparison_panel
 from octcl.host.loss import ExactScore
 from octcl.host.target import read_target
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
@@ -136,7 +148,12 @@ def main(argv=None) -> int:
     parser.add_argument("--schedules", nargs="+", choices=sorted(SCHEDULES), default=["default"],
                         help="stage-3 schedules to compare, run one after the other on each scan and seed "
                              "(default: default)")
+    parser.add_argument("--summarise", action="store_true",
+                        help="run nothing: write comparison.md and score_vs_time.png again from --out's bench.json")
     args = parser.parse_args(argv)
+    if args.summarise:
+        print(write_summary(args.out))
+        return 0
 
     targets = development_set(args.out, args.skin)
     names = args.scans or list(targets)
@@ -209,14 +226,104 @@ def main(argv=None) -> int:
     write_csv(args.out / "spread.csv",
               ["schedule", "scan", "n", "mean", "std", "min", "max", "min_significant_difference"],
               [{"schedule": schedule, "scan": name, **values} for (schedule, name), values in spreads.items()])
-    with atomic_write(args.out / "score_vs_time.png") as handle:
-        handle.write(score_plot({run: report["trace"] for run, report in reports.items()},
-                                "best exact score against time", size=(9, 5.6)))
     for (schedule, name), values in spreads.items():
         print(f"{schedule} {name}: {values['mean']:.6f} ± {values['std']:.1e} (min {values['min']:.6f}, "
               f"max {values['max']:.6f}, n {values['n']}); significant difference > "
               f"{values['min_significant_difference']:.1e}")
+    print(write_summary(args.out))
     return 0
+
+
+def write_summary(out: Path) -> str:
+    """``comparison.md`` and ``score_vs_time.png`` from ``out/bench.json`` and the runs' reports; returns the text.
+
+    The text: per run its score, seconds, iterations and what stopped it; with
+    several schedules, each one's difference to the first (score, and time as
+    a ratio), the global score and the median seconds; seconds to reach each
+    score level; and where an iteration's time goes (wall and CPU seconds per
+    stage-3 iteration, and the cores busy, CPU / wall, from the reports'
+    ``refine_timings_s`` and ``refine_cpu_s``).
+    """
+    bench = json.loads((out / "bench.json").read_text())
+    rows, schedules = bench["runs"], bench.get("schedules", ["default"])
+    reports = {run: json.loads((out / f"{run}.report.json").read_text()) for run in rows}
+    first = schedules[0]
+    lines = ["| scan | seed | " + " | ".join(f"{s} score | {s} s | {s} iterations (stop)" for s in schedules)
+             + "".join(f" | {s} − {first} score | {s} / {first} s" for s in schedules[1:]) + " |",
+             "|---|---|" + "---|---|---|" * len(schedules) + "---|---|" * (len(schedules) - 1)]
+    pairs = {}
+    for row in rows.values():
+        pairs.setdefault((row["scan"], row["seed"]), {})[row["schedule"] if "schedule" in row else first] = row
+    for (scan, seed), by in pairs.items():
+        cells = [f"{by[s]['mean']:.6f} | {by[s]['seconds']:.0f} | {by[s]['iterations']} ({by[s].get('stop_reason')})"
+                 if s in by else " | | " for s in schedules]
+        deltas = [f"{by[s]['mean'] - by[first]['mean']:+.1e} | {by[s]['seconds'] / by[first]['seconds']:.2f}"
+                  if s in by and first in by else " | " for s in schedules[1:]]
+        lines.append(f"| {scan} | {seed} | " + " | ".join(cells + deltas) + " |")
+    for schedule in schedules:
+        of = [row for row in rows.values() if row.get("schedule", first) == schedule]
+        for seed in sorted({row["seed"] for row in of}):
+            runs = [row for row in of if row["seed"] == seed]
+            global_score = float(np.mean([np.median([row[c] for row in runs]) for c in COMPONENTS]))
+            lines.append(f"\n{schedule}, seed {seed}: global score {global_score:.6f}, median "
+                         f"{float(np.median([row['seconds'] for row in runs])):.0f} s, total "
+                         f"{sum(row['seconds'] for row in runs):.0f} s over {len(runs)} scans")
+    labels = [key[len("seconds_to_"):] for key in next(iter(rows.values())) if key.startswith("seconds_to_")]
+    lines += ["", "Seconds from the start of the run until the best exact score reached:", "",
+              "| run | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
+    for run, row in rows.items():
+        cells = ["–" if row[f"seconds_to_{label}"] is None else f"{row[f'seconds_to_{label}']:.0f}"
+                 for label in labels]
+        lines.append(f"| {run} | " + " | ".join(cells) + " |")
+    for schedule in schedules:
+        runs = [run for run, row in rows.items() if row.get("schedule", first) == schedule]
+        iterations = sum(reports[run]["iterations"] for run in runs)
+        if not iterations or "refine_cpu_s" not in reports[runs[0]]:
+            continue
+        lines += ["", f"Stage 3 per iteration, {schedule} ({iterations} iterations over {len(runs)} runs):", "",
+                  "| part | wall s | CPU s | cores busy |", "|---|---|---|---|"]
+        parts = reports[runs[0]]["refine_timings_s"]
+        for part in parts:
+            wall = sum(reports[run]["refine_timings_s"][part] for run in runs) / iterations
+            cpu = sum(reports[run]["refine_cpu_s"][part] for run in runs) / iterations
+            lines.append(f"| {part} | {wall:.3f} | {cpu:.3f} | {cpu / wall if wall else 0:.2f} |")
+        refine_s = sum(reports[run]["seconds"]["refine"] for run in runs) / iterations
+        lines.append(f"| whole iteration (stage 3's wall time / iterations) | {refine_s:.3f} | | |")
+    text = "\n".join(lines) + "\n"
+    with atomic_write(out / "comparison.md", "w") as handle:
+        handle.write(text)
+    with atomic_write(out / "score_vs_time.png") as handle:
+        handle.write(comparison_plot(rows, reports, schedules))
+    return text
+
+
+def comparison_plot(rows: dict, reports: dict, schedules: list[str]) -> bytes:
+    """PNG: one panel per scan, the best exact score against seconds of each of its runs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from octcl.host.batch.report import best_so_far
+
+    scans = list(dict.fromkeys(row["scan"] for row in rows.values()))
+    columns = min(len(scans), 4)
+    figure = Figure(figsize=(3.6 * columns, 2.8 * -(-len(scans) // columns)), dpi=100, layout="constrained")
+    axes = figure.subplots(-(-len(scans) // columns), columns, squeeze=False).ravel()
+    for panel, scan in zip(axes, scans):
+        for run, row in rows.items():
+            if row["scan"] == scan:
+                seconds, best = best_so_far(reports[run]["trace"])
+                label = f"{row.get('schedule', schedules[0])}, seed {row['seed']}"
+                panel.plot(seconds, best, marker=".", markersize=3, label=label)
+        panel.set(title=scan, xlabel="seconds", ylabel="best exact score")
+        panel.grid(alpha=0.3)
+        panel.legend(fontsize=7)
+    for panel in axes[len(scans):]:
+        panel.set_visible(False)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    return buffer.getvalue()
 
 
 def write_csv(path: Path, columns: list[str], rows) -> None:

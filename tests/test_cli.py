@@ -266,9 +266,11 @@ def test_entry_point_runs_as_a_program(tmp_path):
 
 def test_invert_prints_a_summary_or_json(tmp_path, capsys, official_data):
     target = official_data / "Scan_Exp2_Layers_A.png"
+    # A target score below stage 2's: stage 3 stops at its first exact evaluation.
     status, human, err = run(capsys, "invert", target, "-o", tmp_path / "a.txt", "--time-budget", 20,
-                             "--report", tmp_path / "a.json")
+                             "--target-score", 0.5, "--report", tmp_path / "a.json")
     assert status == 0 and "\r" not in err and "invert 100%" in err.splitlines()[-1]
+    assert "iterations: 0 (deadline mode, stopped: target score reached)" in human
     with pytest.raises(json.JSONDecodeError):
         json.loads(human)
     report = json.loads((tmp_path / "a.json").read_text())

@@ -57,7 +57,7 @@ def test_bad_budget_is_refused(layers_path, tmp_path):
 
 
 def test_budget_is_respected_and_report_written(layers_path, tmp_path):
-    budget = 40.0
+    budget = 30.0
     output, report_path = tmp_path / "layers.txt", tmp_path / "layers.json"
     calls = []
     start = time.monotonic()
@@ -105,7 +105,8 @@ def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):
         "from octcl.host.refine import Phase, RefineSchedule\n"
         "invert.CHECKPOINT_INTERVAL_S = 0.0\n"
         f"invert.invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=120,\n"
-        "              schedule=RefineSchedule(phases=(Phase(10000, 0.002, 0.05),), restarts=(), score_every=1))\n"
+        "              schedule=RefineSchedule(phases=(Phase(10000, 0.002, 0.05),), restarts=(), score_every=1,\n"
+        "                                      patience=None))\n"
     )
     process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE)

@@ -185,7 +185,7 @@ def test_constraints_hold_after_steps(stage2_phantom, layers_target):
     energy = np.where(rng.random(count) < 0.5, MAX_ENERGY_PCT, 0.0)
     start = Phantom(stage2_phantom.x_um, stage2_phantom.y_um, z, energy)
     schedule = RefineSchedule(phases=(Phase(3, 50.0, 30.0),), restarts=(Phase(2, 50.0, 30.0),),
-                              score_every=1)
+                              score_every=1, patience=None)
     result = refine(start, layers_target, schedule)
     assert result.iterations == 5
     phantom = result.phantom
