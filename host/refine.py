@@ -37,33 +37,34 @@ Adaptive stopping (:attr:`RefineSchedule.min_gain`, ``patience``). The
 exact score of the iterates is noisy: along the main run at lr_z_um 0.002
 it moves by ±1e−4 to ±4e−4 between checkpoints 20 iterations apart, and the
 best so far keeps rising by such jumps long after the loss has flattened.
-Measured with the whole 400-iteration schedule (``python
-scripts/bench_invert.py --seeds 0 --skin 3 --schedules fixed-length default``,
-one run per scan, the machine busy with nothing else, 1.2–1.4 s an
-iteration; tables in ``docs/benchmarks.md``, "Adaptive stopping"):
+Measured on the development set with the whole 400-iteration schedule and
+with a stall rule on the main run (``python scripts/bench_invert.py --seeds
+0 --skin 3 --schedules fixed-length stall-rule``, one run per scan; tables
+in ``docs/benchmarks.md``, "Adaptive stopping"):
 
-- orange.png: the main run's best came at iteration 120 (0.99915) and the
-  next 160 iterations never beat it; the restarts from that best phantom
-  gained 2.9e−4 and 5.5e−5;
+- orange.png: the main run's best came at iteration 120–140 and the next
+  140–160 iterations never beat it; the restarts from that best phantom
+  gained 2.6e−5 to 2.9e−4 each;
 - Uniform A: a plateau from iteration 40 to 260 (0.99849–0.99863), then
   0.99887 at 280, the main run's last checkpoint; neither restart gained;
-- Uniform B: new bests up to iteration 260 (0.99938) in jumps of up to
-  4e−4 after plateaus of 40–60 iterations; neither restart gained.
+- Uniform B: new bests up to iteration 260 in jumps of up to 4e−4 after
+  plateaus of 40–60 iterations; neither restart gained.
 
-A stall rule on the main run (``patience`` 2 checkpoints without a gain of
-1e−5, then the restarts) cannot tell Uniform A's or B's plateaus from
-orange's: run on Uniform A it stopped after 180 iterations and 247 s
-against 545 s, but 2.3e−4 lower; on Uniform B it would have ended the main
-run at iteration 140, 3.9e−4 below that run's best. So the main run keeps
-its length by default (``patience=None``). What the data do support: a
-restart that does not beat its parent is followed by one that does not
-either (Uniform A and B), while orange's restarts both gained. Hence the
-default ``min_gain`` = 1e−5: the first restart that gains less ends the
-refinement, which saves the last restart's 60 iterations (some 13 % of the
-run) where the restarts have stopped paying, at no cost in score on these
-scans. Where the main run stops early (``patience``, or a schedule whose
-main run is shorter than its iterations), the last restart is repeated
-while each gains, so a scene that still gains keeps its iterations.
+The stall rule (``patience`` 2 checkpoints without a gain of 1e−5, then the
+restarts) cannot tell Uniform A's or B's plateaus from orange's: it took
+0.54 of the time (median) with a global score as high, but ended Uniform
+A 2.3e−4 and Uniform B 1.3e−4 below the whole schedule, and one run per
+scan cannot tell whether that is its cost or the noise. So the main run
+keeps its length by default (``patience=None``). What the data do support:
+a restart that does not beat its parent was followed by one that did not
+either (or gained < 6e−6), while restarts that gained were followed by
+gains. Hence the default ``min_gain`` = 1e−5: the first restart that gains
+less ends the refinement. On those runs it saves the last restart (13–14 %
+of the run) on five of the seven scans, at most 5.4e−6 of score. Where the
+main run stops early (``patience``, or a schedule whose restarts are
+shorter than the iterations the main run left), the last restart is
+repeated while each gains, so a scene that still gains keeps its
+iterations.
 
 The loss only stands in for the score, so progress is judged by the exact
 score (:class:`octcl.host.loss.ExactScore`, the mean of the eight official
