@@ -41,7 +41,7 @@ from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 
-from .refine import RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, refine
+from .refine import RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, check_target_score, refine
 from .target import check_target, read_target, target_scan
 
 #: Least time between two checkpoint writes during refinement, in seconds.
@@ -384,8 +384,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     for label, count in (("threads", threads), ("field_iterations", field_iterations)):
         if count is not None and not (isinstance(count, int) and count >= 1):
             raise ValueError(f"{label} must be a whole number ≥ 1, got {count!r}")
-    if target_score is not None and not (isinstance(target_score, (int, float)) and 0 < target_score <= 1):
-        raise ValueError(f"target_score must be a score in (0, 1], got {target_score!r}")
+    check_target_score(target_score)  # before the work starts, as the other arguments
     fixed = iterations is not None
     if fixed:
         schedule = schedule.truncated(iterations)

@@ -354,6 +354,12 @@ class RefineResult:
     torch_threads: int
 
 
+def check_target_score(target_score) -> None:
+    """Raise ValueError unless ``target_score`` is None or a score in (0, 1]."""
+    if target_score is not None and not (isinstance(target_score, (int, float)) and 0 < target_score <= 1):
+        raise ValueError(f"target_score must be a score in (0, 1], got {target_score!r}")
+
+
 def saved_precision(values: np.ndarray) -> np.ndarray:
     """``values`` as the phantom file holds them: rounded to ``SIGNIFICANT_DIGITS`` as :meth:`Phantom.save` writes them."""
     return _round_significant(values, SIGNIFICANT_DIGITS)
@@ -611,8 +617,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     """
     started = time.monotonic()
     clock = _Clock(deadline, ceiling)
-    if target_score is not None and not (isinstance(target_score, (int, float)) and 0 < target_score <= 1):
-        raise ValueError(f"target_score must be a score in (0, 1], got {target_score!r}")
+    check_target_score(target_score)
     if kernels is None:
         from octcl._scanner_op import ScannerKernels
 
@@ -641,16 +646,21 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         if progress:
             progress(RefineProgress(stage, iterations, total, *last_score, best.score))
 
+    def reach_target():
+        """Stop everything once the best score has reached the target score."""
+        nonlocal stop_reason
+        if target_score is not None and best.score >= target_score:
+            stop_reason = "target score"
+
     def consider(components, stage, iteration, z, u):
-        """Keep (z, u) if it beats the best; stop everything once the target score is reached."""
-        nonlocal best, last_score, stop_reason
+        """Keep (z, u) if it beats the best, then :func:`reach_target`."""
+        nonlocal best, last_score
         last_score = (components["mean"], time.monotonic())
         if components["mean"] > best.score:
             best = Checkpoint(z.copy(), u.copy(), components, stage, iteration)
             if on_improvement:
                 on_improvement(as_phantom(z, u), components)
-        if target_score is not None and best.score >= target_score:
-            stop_reason = "target score"
+        reach_target()
 
     def run(stage, phases, z, u, checkpoints):
         """Adam from (z, u) through ``phases``; score after the given step counts and at the end.
@@ -717,9 +727,8 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         trace.append({"time_s": last_score[1] - started, "stage": "initial", "iteration": 0,
                       "loss": None, "score": initial["mean"]})
         report("refine")
-        if target_score is not None and initial["mean"] >= target_score:
-            stop_reason = "target score"
-        else:
+        reach_target()
+        if not stop_reason:
             stalled = run("refine", schedule.phases, z_um, log_energy,
                           set(range(schedule.score_every, main_length, schedule.score_every)))
             if stalled and not schedule.restarts:
@@ -747,4 +756,4 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
 
 
 __all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule",
-           "TimeBudgetExceeded", "refine", "saved_precision"]
+           "TimeBudgetExceeded", "check_target_score", "refine", "saved_precision"]

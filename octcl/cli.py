@@ -233,7 +233,8 @@ def _cmd_invert(args) -> int:
         raise UsageError("invert needs -o PHANTOM.txt")
     from .host.invert import TimeBudgetExceeded, invert
 
-    # The fixed schedule's options, for one scan or each scan of a batch (docs/reproducibility.md).
+    # Stage options for one scan or each scan of a batch: the fixed schedule's (docs/reproducibility.md)
+    # and the target score.
     schedule = {name: getattr(args, name) for name in ("iterations", "field_iterations", "threads", "target_score")
                 if getattr(args, name) is not None}
     if args.target:

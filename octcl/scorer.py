@@ -223,11 +223,18 @@ def score_directories(ref_dir, pred_dir, progress=None) -> dict:
         scans[name] = score(ref_dir / name, pred_dir / name)
         if progress is not None:
             progress(index, len(names), name)
-    medians = {
-        component: float(np.median([scans[name][component] for name in names]))
-        for component in COMPONENTS
-    }
-    return {"scans": scans, "medians": medians, "score": float(np.mean(list(medians.values())))}
+    medians, global_ = global_score(scans.values())
+    return {"scans": scans, "medians": medians, "score": global_}
+
+
+def global_score(scans) -> tuple[dict, float]:
+    """(per-component medians, their mean) over ``scans``, each a dict holding the eight COMPONENTS.
+
+    The mean of the eight per-component medians is the SynthOCT global score.
+    """
+    scans = list(scans)
+    medians = {component: float(np.median([scan[component] for scan in scans])) for component in COMPONENTS}
+    return medians, float(np.mean(list(medians.values())))
 
 
 def write_score_csv(result: dict, path) -> None:

@@ -71,7 +71,7 @@ from octcl.host.refine import RefineSchedule
 from octcl.host.target import read_target
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.render import render
-from octcl.scorer import COMPONENTS
+from octcl.scorer import COMPONENTS, global_score
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 OFFICIAL_DIR = REPOSITORY / "data" / "official"
@@ -203,16 +203,15 @@ def main(argv=None) -> int:
                       f"{report['iterations']} iterations ({report.get('stop_reason')}), "
                       f"{report['seconds']['total']:.0f} s, {report['peak_memory_mib']:.0f} MiB", flush=True)
 
-    def global_score(schedule, seed):  # mean of the 8 per-component medians over the scans, for one seed
-        runs = [row for row in rows.values() if row["seed"] == seed and row["schedule"] == schedule]
-        return float(np.mean([np.median([row[c] for row in runs]) for c in COMPONENTS]))
+    def global_of(schedule, seed):  # mean of the 8 per-component medians over the scans, for one seed
+        return global_score(row for row in rows.values() if row["seed"] == seed and row["schedule"] == schedule)[1]
 
     spreads = {}
     for schedule in args.schedules:
         of = [row for row in rows.values() if row["schedule"] == schedule]
         for name in names:
             spreads[schedule, name] = spread([row["mean"] for row in of if row["scan"] == name])
-        spreads[schedule, "global"] = spread([global_score(schedule, seed) for seed in args.seeds])
+        spreads[schedule, "global"] = spread([global_of(schedule, seed) for seed in args.seeds])
         spreads[schedule, "median_seconds"] = spread([float(np.median([row["seconds"] for row in of
                                                                        if row["seed"] == seed]))
                                                       for seed in args.seeds])
@@ -267,8 +266,7 @@ def write_summary(out: Path) -> str:
         of = [row for row in rows.values() if row.get("schedule", first) == schedule]
         for seed in sorted({row["seed"] for row in of}):
             runs = [row for row in of if row["seed"] == seed]
-            global_score = float(np.mean([np.median([row[c] for row in runs]) for c in COMPONENTS]))
-            lines.append(f"\n{schedule}, seed {seed}: global score {global_score:.6f}, median "
+            lines.append(f"\n{schedule}, seed {seed}: global score {global_score(runs)[1]:.6f}, median "
                          f"{float(np.median([row['seconds'] for row in runs])):.0f} s, total "
                          f"{sum(row['seconds'] for row in runs):.0f} s over {len(runs)} scans")
     labels = [key[len("seconds_to_"):] for key in next(iter(rows.values())) if key.startswith("seconds_to_")]

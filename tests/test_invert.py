@@ -105,8 +105,7 @@ def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):
         "from octcl.host.refine import Phase, RefineSchedule\n"
         "invert.CHECKPOINT_INTERVAL_S = 0.0\n"
         f"invert.invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=120,\n"
-        "              schedule=RefineSchedule(phases=(Phase(10000, 0.002, 0.05),), restarts=(), score_every=1,\n"
-        "                                      patience=None))\n"
+        "              schedule=RefineSchedule(phases=(Phase(10000, 0.002, 0.05),), restarts=(), score_every=1))\n"
     )
     process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE)

@@ -185,7 +185,7 @@ def test_constraints_hold_after_steps(stage2_phantom, layers_target):
     energy = np.where(rng.random(count) < 0.5, MAX_ENERGY_PCT, 0.0)
     start = Phantom(stage2_phantom.x_um, stage2_phantom.y_um, z, energy)
     schedule = RefineSchedule(phases=(Phase(3, 50.0, 30.0),), restarts=(Phase(2, 50.0, 30.0),),
-                              score_every=1, patience=None)
+                              score_every=1)
     result = refine(start, layers_target, schedule)
     assert result.iterations == 5
     phantom = result.phantom
@@ -196,7 +196,7 @@ def test_constraints_hold_after_steps(stage2_phantom, layers_target):
 
 
 def test_deadline_is_respected(stage2_phantom, layers_target):
-    schedule = RefineSchedule(phases=(Phase(10_000, 0.01, 0.02),), restarts=(), score_every=5, patience=None)
+    schedule = RefineSchedule(phases=(Phase(10_000, 0.01, 0.02),), restarts=(), score_every=5)
     start = time.monotonic()
     result = refine(stage2_phantom, layers_target, schedule, deadline=start + 15.0)
     elapsed = time.monotonic() - start

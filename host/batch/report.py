@@ -30,7 +30,7 @@ import json
 import numpy as np
 
 from octcl._io import atomic_write
-from octcl.scorer import COMPONENTS
+from octcl.scorer import COMPONENTS, global_score
 
 #: Columns of summary.csv, in order.
 COLUMNS = ("scan", "status", *COMPONENTS, "mean", "seconds", "peak_memory_mib", "cpu_s", "worker", "error")
@@ -125,9 +125,8 @@ def summarise(rows: dict[str, dict], settings: dict, cluster: str | None, wall_s
                           for status in (*DONE, "failed", "pending")},
                **settings, "cluster": cluster, "wall_s": wall_s}
     if done:
-        medians = {c: float(np.median([row[c] for row in done])) for c in COMPONENTS}
-        summary.update(medians=medians, score=float(np.mean(list(medians.values()))),
-                       median_seconds=float(np.median([row["seconds"] for row in done])))
+        medians, score = global_score(done)
+        summary.update(medians=medians, score=score, median_seconds=float(np.median([row["seconds"] for row in done])))
     return summary
 
 
