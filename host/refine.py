@@ -107,6 +107,10 @@ from .target import target_scan
 
 #: Largest energy of the task contract, in % (u ≤ ln 100).
 MAX_ENERGY_PCT = 100.0
+#: The default :attr:`RefineSchedule.min_gain`: the smallest gain of exact score that counts as progress.
+MIN_GAIN = 1e-5
+#: Stopping rules by name (:meth:`RefineSchedule.with_stop_rule`), the default first.
+STOP_RULES = ("restarts", "stall", "none")
 
 
 @dataclass(frozen=True)
@@ -188,6 +192,12 @@ class RefineSchedule:
         exact score has gained less than ``min_gain`` over its last
         ``patience`` checkpoints. Off by default: on the development set it
         cost up to 2.3e−4 of score (module docstring).
+    lpips_every : int
+        In ``lpips`` phases, the LPIPS terms' gradient is computed on every
+        ``lpips_every``-th step of a run (and its first, and the first after
+        a phase without LPIPS) and reused on the steps between
+        (:class:`octcl.host.loss.DisplayLoss`, ``lpips="keep"``/``"reuse"``);
+        the other terms are computed on every step. 1: LPIPS on every step.
 
     These decisions follow the exact scores alone, never the clock, so
     fixed-schedule runs stay reproducible.
@@ -204,7 +214,8 @@ class RefineSchedule:
     loss_weights: LossWeights = field(default_factory=LossWeights)
     max_iterations: int | None = None
     patience: int | None = None
-    min_gain: float | None = 1e-5
+    min_gain: float | None = MIN_GAIN
+    lpips_every: int = 1
 
     def __post_init__(self):
         if self.score_every < 1:
@@ -221,10 +232,26 @@ class RefineSchedule:
             raise ValueError(f"min_gain must be ≥ 0 or None, got {self.min_gain}")
         if self.patience is not None and self.min_gain is None:
             raise ValueError("patience needs a min_gain")
+        if not (isinstance(self.lpips_every, int) and self.lpips_every >= 1):
+            raise ValueError(f"lpips_every must be a whole number ≥ 1, got {self.lpips_every!r}")
 
     def fixed_length(self) -> "RefineSchedule":
         """This schedule without adaptive stopping: every phase and restart runs its whole length."""
         return dataclasses.replace(self, patience=None, min_gain=None)
+
+    def with_stop_rule(self, rule: str) -> "RefineSchedule":
+        """This schedule with one of the stopping rules of :data:`STOP_RULES` (``octcl invert --stop-rule``).
+
+        ``restarts``: ``min_gain`` 1e−5, no ``patience`` (the default);
+        ``stall``: the same and ``patience`` 2 (about half the time on the
+        development set, not yet shown to keep every scan's score: module
+        docstring); ``none``: :meth:`fixed_length`.
+        """
+        if rule not in STOP_RULES:
+            raise ValueError(f"stop rule must be one of {', '.join(STOP_RULES)}, got {rule!r}")
+        if rule == "none":
+            return self.fixed_length()
+        return dataclasses.replace(self, min_gain=MIN_GAIN, patience=2 if rule == "stall" else None)
 
     @classmethod
     def published(cls) -> "RefineSchedule":
@@ -512,12 +539,19 @@ class _Refiner:
         self.clock.record("render", time.perf_counter() - start)
         return rendering
 
-    def gradients(self, rendering: Rendering, lpips: bool):
-        """(loss value, ∂loss/∂u, ∂loss/∂z) of the last :meth:`render` (with for_adjoint)."""
+    def gradients(self, rendering: Rendering, lpips: bool, lpips_mode: str = "compute"):
+        """(loss value, ∂loss/∂u, ∂loss/∂z) of the last :meth:`render` (with for_adjoint).
+
+        ``lpips`` chooses the loss with or without its LPIPS terms;
+        ``lpips_mode`` is :class:`DisplayLoss`'s ``lpips`` argument for the former.
+        """
         self.threads.before_call()
         start = time.perf_counter()
-        value = self._timed("loss", self.losses[lpips], rendering.display)
-        self.threads.after_call(lpips, time.perf_counter() - start)
+        if lpips:
+            value = self._timed("loss", self.losses[True], rendering.display, lpips_mode)
+        else:
+            value = self._timed("loss", self.losses[False], rendering.display)
+        self.threads.after_call((lpips, lpips_mode), time.perf_counter() - start)
         grad_u, grad_z = self._timed("adjoint", self.kernels.adjoint, display_vjp(rendering, value.grad_display))
         return value, grad_u, grad_z
 
@@ -674,10 +708,20 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         # The steps of these phases that the schedule's iteration count still allows.
         plan = [phase for phase in phases for _ in range(phase.iterations)][:total - iterations]
         best_after = [best.score]  # the best score at the run's start and after each of its checkpoints
+        lpips_kept_at = None  # the step whose LPIPS gradient the loss keeps (lpips_every > 1)
         for step in range(len(plan) + 1):
             last = step == len(plan)
             clock.check_ceiling(f"in stage 3 ({stage}) after {iterations} of {total} iterations")
-            if not last and not clock.fits("render", "loss_adjoint", "adam", "render", "score"):
+            lpips_mode = "compute"
+            if not last and plan[step].lpips and schedule.lpips_every > 1:
+                if lpips_kept_at is None or step - lpips_kept_at >= schedule.lpips_every:
+                    lpips_mode, lpips_kept_at = "keep", step
+                else:
+                    lpips_mode = "reuse"
+            elif not last:
+                lpips_kept_at = None
+            loss_adjoint = f"loss_adjoint {lpips_mode}"
+            if not last and not clock.fits("render", loss_adjoint, "adam", "render", "score"):
                 stop_reason, last = "deadline", True
             if last:  # score the final iterate (not rendered yet), if that still fits
                 if step and clock.fits("render", "score"):
@@ -708,8 +752,8 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                     report(stage)
                     return stalled
             start = time.perf_counter()
-            value, grad_u, grad_z = refiner.gradients(rendering, plan[step].lpips)
-            clock.record("loss_adjoint", time.perf_counter() - start)
+            value, grad_u, grad_z = refiner.gradients(rendering, plan[step].lpips, lpips_mode)
+            clock.record(loss_adjoint, time.perf_counter() - start)
             entry["loss"] = value.loss
             start = time.perf_counter()
             refiner.step(adam, (z, u), (grad_z, grad_u), (plan[step].lr_z_um, plan[step].lr_u))
@@ -755,5 +799,5 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                         torch_threads=refiner.threads.threads)
 
 
-__all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule",
+__all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule", "STOP_RULES",
            "TimeBudgetExceeded", "check_target_score", "refine", "saved_precision"]

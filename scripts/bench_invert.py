@@ -96,9 +96,12 @@ def development_set(out: Path, skin: int) -> dict[str, Path]:
 #: ``--schedules``: stage 3's schedule by name. ``fixed-length`` is the
 #: default's phases and restarts, each run to its whole length (the schedule
 #: before adaptive stopping); ``stall-rule`` adds to the default the main
-#: run's stall rule with a patience of 2 checkpoints (host/refine.py).
+#: run's stall rule with a patience of 2 checkpoints; ``lpips-every-K``
+#: computes the LPIPS terms' gradient on every K-th step and reuses it
+#: between (host/refine.py).
 SCHEDULES = {"default": "RefineSchedule()", "fixed-length": "RefineSchedule().fixed_length()",
-             "stall-rule": "RefineSchedule(patience=2)"}
+             "stall-rule": "RefineSchedule(patience=2)",
+             **{f"lpips-every-{k}": f"RefineSchedule(lpips_every={k})" for k in (2, 3)}}
 
 
 def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None,

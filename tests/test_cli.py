@@ -278,23 +278,27 @@ def test_invert_prints_a_summary_or_json(tmp_path, capsys, official_data):
     assert "MS-SSIM" in human and "report:" in human
     # The same keys as JSON (a tiny fixed schedule: the keys do not depend on the mode).
     status, out, _ = run(capsys, "invert", target, "-o", tmp_path / "b.txt", "--iterations", 1,
-                         "--field-iterations", 10, "--json")
+                         "--field-iterations", 10, "--stop-rule", "none", "--json")
     assert status == 0 and set(json.loads(out)) == JSON_KEYS["invert"]
+    assert json.loads(out)["reproduce"].endswith("--threads 1 --stop-rule none")
     targets = tmp_path / "targets"
     (targets / "sub").mkdir(parents=True)
     (targets / "sub" / "layers.png").write_bytes(target.read_bytes())
     status, out, err = run(capsys, "invert", "--targets", targets, "--out", tmp_path / "out",
-                           "--iterations", 1, "--field-iterations", 10, "--workers", 1, "--json")
+                           "--iterations", 1, "--field-iterations", 10, "--stop-rule", "stall", "--workers", 1,
+                           "--json")
     summary = json.loads(out)
     assert status == 0 and set(summary) == JSON_KEYS["invert --targets"]
     assert set(summary["scans"]["sub/layers.png"]) == {"scan", "status", *COMPONENT_KEYS, "seconds",
                                                        "peak_memory_mib", "cpu_s", "worker", "error"}
     assert summary["counts"]["inverted"] == 1 and (tmp_path / "out" / "sub" / "layers.txt").is_file()
-    assert summary["options"] == {"iterations": 1, "field_iterations": 10}
+    assert summary["options"]["schedule"]["patience"] == 2  # the stall rule, recorded for resume
+    assert {key: summary["options"][key] for key in ("iterations", "field_iterations")} == {
+        "iterations": 1, "field_iterations": 10}
     assert "dashboard http://127.0.0.1:" in err and "invert 100%  1/1 scans: 1 inverted" in err
     # Everything done: a rerun starts no cluster and says so.
     status, human, err = run(capsys, "invert", "--targets", targets, "--out", tmp_path / "out",
-                             "--iterations", 1, "--field-iterations", 10, "--workers", 1)
+                             "--iterations", 1, "--field-iterations", 10, "--stop-rule", "stall", "--workers", 1)
     assert status == 0 and "1 scans: 1 resumed" in human and "report.html" in human
     assert "dashboard" not in err
 

@@ -110,6 +110,37 @@ def test_loss_weights_skip_terms_and_refuse_bad_values(layers_path):
         LossWeights(**{name: 0.0 for name in LossWeights.__dataclass_fields__})
 
 
+def test_kept_lpips_gradient_is_reused(layers_path, uniform_levels):
+    """``keep`` gives ``compute``'s loss and gradient; ``reuse`` adds the kept LPIPS part to the rest at D."""
+    target = read_scan(layers_path, SCAN_SHAPE)
+    weights = LossWeights(oac_lpips=0.4, struct_lpips=0.01, sc_lpips=0, rsc_lpips=0)
+    loss, without = DisplayLoss(target, weights), DisplayLoss(target, weights.without_lpips())
+    with pytest.raises(ValueError, match="earlier call"):
+        loss(target.astype(np.float64), lpips="reuse")
+    with pytest.raises(ValueError, match="lpips must be"):
+        loss(target.astype(np.float64), lpips="sometimes")
+    rng = np.random.default_rng(2)
+    kept_at = (uniform_levels + rng.random(uniform_levels.shape)) / 256.0
+    elsewhere = np.clip(kept_at + rng.normal(0, 0.02, kept_at.shape), 0, 1)
+    computed, kept = loss(kept_at), loss(kept_at, lpips="keep")
+    assert kept.loss == pytest.approx(computed.loss, rel=1e-6) and kept.terms == pytest.approx(computed.terms)
+    np.testing.assert_allclose(kept.grad_display, computed.grad_display,
+                               atol=1e-5 * np.abs(computed.grad_display).max())
+    lpips_part = computed.grad_display - without(kept_at).grad_display
+    assert np.abs(lpips_part).max() > 0.01 * np.abs(computed.grad_display).max()  # LPIPS matters here
+    reused, rest = loss(elsewhere, lpips="reuse"), without(elsewhere)
+    np.testing.assert_allclose(reused.grad_display, rest.grad_display + lpips_part,
+                               atol=1e-5 * np.abs(computed.grad_display).max())
+    lpips_value = sum(getattr(weights, name) * kept.terms[name] for name in ("oac_lpips", "struct_lpips"))
+    assert reused.loss == pytest.approx(rest.loss + lpips_value, rel=1e-6)
+    assert reused.terms["oac_lpips"] == kept.terms["oac_lpips"]
+    # LPIPS-only weights: reusing leaves only the kept part.
+    only = DisplayLoss(target, LossWeights(**{**{name: 0.0 for name in LossWeights.__dataclass_fields__},
+                                              "struct_lpips": 1.0}))
+    first = only(kept_at, lpips="keep")
+    np.testing.assert_array_equal(only(elsewhere, lpips="reuse").grad_display, first.grad_display)
+
+
 @pytest.mark.parametrize("kind", ["official", "grey"])
 def test_exact_score_matches_the_scorer_on_saved_files(layers_path, uniform_levels, tmp_path, kind):
     """ExactScore of levels equals octcl.scorer.score of the same levels written as a PNG.
@@ -207,6 +238,25 @@ def test_deadline_is_respected(stage2_phantom, layers_target):
     assert result.components["mean"] >= result.initial_components["mean"]
 
 
+def test_lpips_gradient_is_computed_every_k_steps_of_a_run(stage2_phantom, layers_target, monkeypatch):
+    """``lpips_every`` 2: kept on a run's first step, every second after, and after a step without LPIPS."""
+    calls = []
+    original = DisplayLoss.__call__
+
+    def spy(self, display, lpips="compute"):
+        calls.append(lpips if any(name.endswith("lpips") and weight > 0 for name, weight in
+                                  vars(self.weights).items()) else "none")
+        return original(self, display, lpips)
+
+    monkeypatch.setattr(DisplayLoss, "__call__", spy)
+    schedule = RefineSchedule(phases=(Phase(3, 0.001, 0.01), Phase(1, 0.001, 0.01, lpips=False),
+                                      Phase(1, 0.001, 0.01)), restarts=(Phase(1, 0.001, 0.01),),
+                              loss_weights=STRUCT_WEIGHTS, lpips_every=2, min_gain=None)
+    result = refine(stage2_phantom, layers_target, schedule, threads=2)
+    assert result.iterations == 6
+    assert calls == ["keep", "reuse", "keep", "none", "keep", "keep"]
+
+
 def test_a_stalled_run_stops(stage2_phantom, layers_target):
     """Zero learning rates never gain: the main run ends at its first checkpoint, then one restart.
 
@@ -263,6 +313,14 @@ def test_schedule_checks():
             RefineSchedule(patience=bad)
     with pytest.raises(ValueError, match="min_gain"):
         RefineSchedule(min_gain=float("nan"))
+    for bad in (0, 2.0):
+        with pytest.raises(ValueError, match="lpips_every"):
+            RefineSchedule(lpips_every=bad)
+    rules = {rule: RefineSchedule().with_stop_rule(rule) for rule in ("restarts", "stall", "none")}
+    assert rules["restarts"] == RefineSchedule() and rules["none"] == RefineSchedule().fixed_length()
+    assert (rules["stall"].patience, rules["stall"].min_gain) == (2, RefineSchedule().min_gain)
+    with pytest.raises(ValueError, match="stop rule"):
+        RefineSchedule().with_stop_rule("never")
     published = RefineSchedule.published()
     assert published.total_iterations == 1400
     assert [restart.lr_z_um for restart in published.restarts] == [0.002, 0.002, 0.001, 0.0005]
