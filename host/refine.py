@@ -197,7 +197,11 @@ class RefineSchedule:
         ``lpips_every``-th step of a run (and its first, and the first after
         a phase without LPIPS) and reused on the steps between
         (:class:`octcl.host.loss.DisplayLoss`, ``lpips="keep"``/``"reuse"``);
-        the other terms are computed on every step. 1: LPIPS on every step.
+        the other terms are computed on every step. 1: LPIPS on every step,
+        the default: with 2 or 3, the score fell on every reusing step and
+        ended lower on every scan of the development set, early and late in
+        the schedule, for 0.2–0.6 s less a step (``scripts/bench_refine.py``,
+        docs/benchmarks.md).
 
     These decisions follow the exact scores alone, never the clock, so
     fixed-schedule runs stay reproducible.

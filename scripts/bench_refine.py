@@ -21,11 +21,13 @@ Struct, SC and RSC LPIPS terms (OAC's has 8× their weight).
 
 Writes, in ``--out``: ``SCAN_stage2.txt`` (and ``SCAN_after_M.txt``), reused
 when present; ``refine.json`` (every variant's trace and timings);
-``refine_comparison.md`` (per scan and variant: seconds per step, final
+``refine_comparison.md`` (per scan and variant: seconds per step and the
+loss's share of them, final
 best score and its difference to ``default``, the best score by the time
 the fastest variant ended, and the seconds to reach ``default``'s final
 best − 1e−4); ``refine_score_vs_time.png`` (per scan, each variant's
-iterate scores against seconds).
+iterate scores against seconds). ``--summarise`` writes the last two again
+from ``refine.json``.
 
 Example::
 
@@ -88,15 +90,16 @@ def best_by(trace: list[dict], seconds: float) -> float:
 
 def summary_lines(results: dict) -> list[str]:
     """The markdown table of ``refine_comparison.md``, one row per scan and variant."""
-    lines = ["| scan | variant | s / step | final best | − default | best by the fastest's end | "
-             "s to default's best − 1e−4 |", "|---|---|---|---|---|---|---|"]
+    lines = ["| scan | variant | s / step | loss s / step | final best | − default | best by the fastest's end | "
+             "s to default's best − 1e−4 |", "|---|---|---|---|---|---|---|---|"]
     for scan, by_variant in results.items():
         default = by_variant["default"]["best"]
         fastest_end = min(run["trace"][-1]["time_s"] for run in by_variant.values())
         for variant, run in by_variant.items():
             reached = seconds_to(run["trace"], default - 1e-4)
-            lines.append(f"| {scan} | {variant} | {run['trace'][-1]['time_s'] / max(run['iterations'], 1):.2f} | "
-                         f"{run['best']:.6f} | {run['best'] - default:+.1e} | "
+            steps = max(run["iterations"], 1)
+            lines.append(f"| {scan} | {variant} | {run['trace'][-1]['time_s'] / steps:.2f} | "
+                         f"{run['timings_s']['loss'] / steps:.2f} | {run['best']:.6f} | {run['best'] - default:+.1e} | "
                          f"{best_by(run['trace'], fastest_end):.6f} | "
                          f"{'never' if reached is None else f'{reached:.0f}'} |")
     return lines
@@ -138,7 +141,13 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--seed", type=int, default=0, help="stage 2's seed (default 0)")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--summarise", action="store_true",
+                        help="run nothing: write refine_comparison.md and the plot again from --out's refine.json")
     args = parser.parse_args(argv)
+    if args.summarise:
+        saved = json.loads((args.out / "refine.json").read_text())
+        print(write_summary(args.out, saved["settings"], saved["results"]))
+        return 0
     if "default" not in args.variants:
         parser.error("--variants must include default (the others are compared with it)")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -176,16 +185,22 @@ def main(argv=None) -> int:
                                       "timings_s": result.timings_s, "cpu_s": result.cpu_s}
             print(f"{name} {variant}: {result.initial_components['mean']:.6f} → {result.components['mean']:.6f} "
                   f"in {result.trace[-1]['time_s']:.0f} s", flush=True)
-    settings = {key: (str(value) if isinstance(value, Path) else value) for key, value in vars(args).items()}
+    settings = {key: (str(value) if isinstance(value, Path) else value) for key, value in vars(args).items()
+                if key not in ("out", "summarise")}
     with atomic_write(args.out / "refine.json", "w") as handle:
         json.dump({"settings": settings, "results": results}, handle, indent=1)
-    text = "\n".join([f"Settings: {json.dumps(settings)}", "", *summary_lines(results)]) + "\n"
-    with atomic_write(args.out / "refine_comparison.md", "w") as handle:
-        handle.write(text)
-    with atomic_write(args.out / "refine_score_vs_time.png", "wb") as handle:
-        handle.write(plot(results))
-    print(text)
+    print(write_summary(args.out, settings, results))
     return 0
+
+
+def write_summary(out: Path, settings: dict, results: dict) -> str:
+    """``refine_comparison.md`` and ``refine_score_vs_time.png`` in ``out``; returns the text."""
+    text = "\n".join([f"Settings: {json.dumps(settings)}", "", *summary_lines(results)]) + "\n"
+    with atomic_write(out / "refine_comparison.md", "w") as handle:
+        handle.write(text)
+    with atomic_write(out / "refine_score_vs_time.png", "wb") as handle:
+        handle.write(plot(results))
+    return text
 
 
 if __name__ == "__main__":
