@@ -38,6 +38,11 @@ per term: on two cores, 0.72 s for the full loss, 0.18 s without LPIPS,
 value and gradient and later calls reuse them (``lpips="keep"`` /
 ``"reuse"``): while the display moves little, the gradient of the sum is
 then ∂(rest)/∂D at the new display plus ∂LPIPS/∂D at the kept one.
+Measured from the same starting phantoms (``scripts/bench_refine.py``,
+docs/benchmarks.md, "what the loss's LPIPS terms buy per second"), neither
+reusing the LPIPS gradient nor leaving LPIPS terms out gains score per
+second on the development set, so refinement computes every term on every
+step by default.
 
 :class:`ExactScore` is the quantity the loss stands in for: the eight
 official components (:mod:`octcl.scorer`) of a rendering's 8-bit levels
@@ -84,10 +89,13 @@ def _onednn_off():
 class LossWeights:
     """Weights of the loss terms (see the module docstring); 0 skips a term.
 
-    The defaults are the published method's weights. LPIPS is about half
-    the loss's time (one 256×512 image through AlexNet and back per term):
-    measured on one core, 0.57 s for the full loss, 0.34 s with OAC LPIPS
-    only and 0.16 s without LPIPS.
+    The defaults are the published method's weights. LPIPS is most of the
+    loss's time (one 256×512 image through AlexNet and back per term):
+    0.69–0.89 s a refinement step for the full loss on two cores, 0.32–0.36 s
+    with OAC's LPIPS only and 0.16–0.20 s without LPIPS (before AlexNet ran
+    with oneDNN, :class:`DisplayLoss`); the cheaper losses
+    reached lower scores per second on three of four scans
+    (``scripts/bench_refine.py``, docs/benchmarks.md).
     """
 
     pixel: float = 1.0
@@ -148,12 +156,15 @@ class DisplayLoss:
 
     Notes
     -----
-    The loss runs with oneDNN (mkldnn) convolutions off: MS-SSIM's
-    single-channel 11-tap filters run 4.7× slower through oneDNN in float32
-    (0.85 s against 0.18 s for forward and backward of two 256×512 maps on
-    one core), while LPIPS's AlexNet gains only ~15 % from it. The backward
-    pass picks its convolution backend again, so it runs inside the same
-    setting, and so do the target's features.
+    The maps and MS-SSIM run with oneDNN (mkldnn) convolutions off:
+    MS-SSIM's single-channel 11-tap filters run 4.7× slower through oneDNN
+    in float32 (0.85 s against 0.18 s for forward and backward of two
+    256×512 maps on one core). LPIPS's AlexNet runs with it, on detached
+    copies of the maps (:meth:`__call__`): the whole loss then takes 0.75–0.92
+    of its time without (0.59–0.63 s against 0.67–0.81 s a refinement step
+    on two cores, ``scripts/bench_refine.py``, docs/benchmarks.md). The
+    backward pass picks its convolution backend again, so each part goes
+    back under its own setting.
     """
 
     def __init__(self, target_scan: np.ndarray, weights: LossWeights = LossWeights(),
@@ -177,24 +188,22 @@ class DisplayLoss:
                    for head, tap_target, tap in zip(self.network.heads, self._target_taps[name],
                                                     self._taps(image)))
 
-    def terms(self, scan: torch.Tensor, lpips: bool = True) -> dict[str, torch.Tensor]:
-        """The unweighted terms with a positive weight, differentiable in the scan P.
+    def _wanted(self, lpips: bool) -> set[str]:
+        """The terms with a positive weight (without the LPIPS ones unless ``lpips``)."""
+        return {name for name, weight in dataclasses.asdict(self.weights).items()
+                if weight > 0 and (lpips or name not in _LPIPS_TERMS)}
 
-        Parameters
-        ----------
-        scan : (Nz, Nx) tensor
-            The grey B-scan P ∈ [0, 1] as the scorer reads it.
-        lpips : bool
-            Compute the LPIPS terms too.
-        """
-        wanted = {name for name, weight in dataclasses.asdict(self.weights).items()
-                  if weight > 0 and (lpips or name not in _LPIPS_TERMS)}
+    @staticmethod
+    def _images(scan: torch.Tensor, wanted: set[str]) -> dict[str, torch.Tensor]:
+        """The scan and, if a wanted term needs them, its OAC, SC and RSC maps."""
         needs_maps = wanted - {"pixel", "struct_msssim", "struct_lpips"}
-        images = {"Struct": scan, **(maps_torch(scan) if needs_maps else {})}
-        target = self.target
-        terms = {}
+        return {"Struct": scan, **(maps_torch(scan) if needs_maps else {})}
+
+    def _pixel_terms(self, images: dict, wanted: set[str]) -> dict[str, torch.Tensor]:
+        """The wanted terms other than LPIPS: pixel, L1 and MS-SSIM."""
+        target, terms = self.target, {}
         if "pixel" in wanted:
-            difference = scan - target["Struct"]
+            difference = images["Struct"] - target["Struct"]
             terms["pixel"] = difference.abs().mean() + (difference**2).mean()
         for name, map_name in (("sc_l1", "SC"), ("oac_l1", "OAC")):
             if name in wanted:
@@ -205,10 +214,25 @@ class DisplayLoss:
             similarity = msssim_torch(torch.stack([target[m] for m in maps]),
                                       torch.stack([images[m] for m in maps]))
             terms.update({name: 1 - value for name, value in zip(msssim_wanted, similarity)})
-        for name, map_name in _LPIPS_TERMS.items():
-            if name in wanted:
-                terms[name] = self._lpips(map_name, images[map_name])
         return terms
+
+    def _lpips_terms(self, images: dict, wanted: set[str]) -> dict[str, torch.Tensor]:
+        return {name: self._lpips(map_name, images[map_name])
+                for name, map_name in _LPIPS_TERMS.items() if name in wanted}
+
+    def terms(self, scan: torch.Tensor, lpips: bool = True) -> dict[str, torch.Tensor]:
+        """The unweighted terms with a positive weight, differentiable in the scan P.
+
+        Parameters
+        ----------
+        scan : (Nz, Nx) tensor
+            The grey B-scan P ∈ [0, 1] as the scorer reads it.
+        lpips : bool
+            Compute the LPIPS terms too.
+        """
+        wanted = self._wanted(lpips)
+        images = self._images(scan, wanted)
+        return {**self._pixel_terms(images, wanted), **self._lpips_terms(images, wanted)}
 
     def __call__(self, display: np.ndarray, lpips: str = "compute") -> LossValue:
         """Loss and ∂loss/∂D for a display D (float array, the shape of the target).
@@ -219,17 +243,27 @@ class DisplayLoss:
         lpips : {"compute", "keep", "reuse"}
             ``compute``: every term at D. ``keep``: the same, and keep the
             LPIPS terms' weighted sum and its gradient ∂/∂D (the LPIPS part
-            and the rest go back in two passes, so the maps' graph is
-            traversed twice; the gradient agrees with ``compute`` to float
-            rounding). ``reuse``: the other terms at D,
-            plus the LPIPS values and gradient kept by the last ``keep`` call
-            (whose terms appear in ``terms`` as they were then).
+            and the rest go back through the maps in two passes; the
+            gradient agrees with ``compute`` to float rounding). ``reuse``:
+            the other terms at D, plus the LPIPS values and gradient kept by
+            the last ``keep`` call (whose terms appear in ``terms`` as they
+            were then).
 
         Raises
         ------
         ValueError
             A display of the wrong shape, an unknown ``lpips``, or ``reuse``
             before any ``keep``.
+
+        Notes
+        -----
+        AlexNet runs on detached copies M' of the maps it compares, with
+        torch's oneDNN setting as the caller has it (on by default, and
+        faster for AlexNet: class Notes), while the maps and MS-SSIM run
+        without oneDNN. Its gradients
+        G_m = ∂LPIPS/∂M'_m then go back through the maps as the surrogate
+        Σ_m ⟨M_m, G_m⟩, whose gradient is the chain rule's
+        Σ_m (∂M_m/∂D)ᵀ G_m: the maps' graph is traversed once.
         """
         display = np.asarray(display)
         if display.shape != tuple(self.target["Struct"].shape):
@@ -242,29 +276,43 @@ class DisplayLoss:
         quantised = torch.as_tensor(ref.quantise(display) / 255.0, dtype=self.dtype)
         # Forward value: the level the scorer reads; gradient: slope 256/255.
         scan = quantised + (QUANTISER_SLOPE * d - (QUANTISER_SLOPE * d).detach())
-        def weighted_sum(names):
+        wanted = self._wanted(lpips != "reuse")
+
+        def weighted_sum(terms):
             # Starts from 0·ΣD so that a sum with no term still has a gradient (of zero).
-            return sum((getattr(self.weights, name) * terms[name] for name in names), 0 * d.sum())
+            return sum((getattr(self.weights, name) * value for name, value in terms.items()), 0 * d.sum())
 
         with _onednn_off():
-            terms = self.terms(scan, lpips=lpips != "reuse")
-            lpips_names = [name for name in terms if name in _LPIPS_TERMS]
-            if lpips == "keep":  # two backward passes: the kept LPIPS part, then the rest
-                lpips_loss = weighted_sum(lpips_names)
-                lpips_grad, = torch.autograd.grad(lpips_loss, d, retain_graph=True)
-                self._kept_lpips = (lpips_loss.item(), lpips_grad.numpy().astype(np.float64),
-                                    {name: terms[name].item() for name in lpips_names})
-                loss = weighted_sum([name for name in terms if name not in _LPIPS_TERMS])
-            else:
-                loss = weighted_sum(terms)
-            loss.backward()
-        loss, grad_display = loss.item(), d.grad.numpy().astype(np.float64)
-        terms = {name: value.item() for name, value in terms.items()}
-        if lpips != "compute":
-            lpips_loss, lpips_grad, lpips_terms = self._kept_lpips
-            loss, grad_display = loss + lpips_loss, grad_display + lpips_grad
+            images = self._images(scan, wanted)
+            terms = self._pixel_terms(images, wanted)
+            loss = weighted_sum(terms)
+        value = loss.item()
+        if wanted & set(_LPIPS_TERMS):  # AlexNet with oneDNN on the maps' copies (Notes)
+            copies = {m: images[m].detach().requires_grad_(True) for m in set(_LPIPS_TERMS.values()) & set(images)}
+            lpips_terms = self._lpips_terms(copies, wanted)
+            lpips_loss = weighted_sum(lpips_terms)
+            grads = dict(zip(copies, torch.autograd.grad(lpips_loss, list(copies.values()), allow_unused=True)))
             terms.update(lpips_terms)
-        return LossValue(loss=loss, grad_display=grad_display, terms=terms)
+            value += lpips_loss.item()
+            with _onednn_off():
+                through_maps = sum(((images[m] * g).sum() for m, g in grads.items() if g is not None), 0 * d.sum())
+                if lpips == "keep":
+                    lpips_grad, = torch.autograd.grad(through_maps, d, retain_graph=True)
+                    self._kept_lpips = (lpips_loss.item(), lpips_grad.numpy().astype(np.float64),
+                                        {name: term.item() for name, term in lpips_terms.items()})
+                else:
+                    loss = loss + through_maps
+        with _onednn_off():
+            loss.backward()
+        grad_display = d.grad.numpy().astype(np.float64)
+        terms = {name: term.item() for name, term in terms.items()}
+        if lpips != "compute":
+            kept_loss, kept_grad, kept_terms = self._kept_lpips
+            grad_display = grad_display + kept_grad
+            if lpips == "reuse":
+                value += kept_loss
+                terms.update(kept_terms)
+        return LossValue(loss=value, grad_display=grad_display, terms=terms)
 
 
 def scan_of_levels(levels: np.ndarray) -> np.ndarray:

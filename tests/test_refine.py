@@ -9,6 +9,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from octcl._io import GREY_LUT, read_png_rgb, read_scan
+from octcl._reference import quantise
 from octcl.host.loss import QUANTISER_SLOPE, DisplayLoss, ExactScore, LossWeights, scan_of_levels
 from octcl.host.refine import MAX_ENERGY_PCT, Phase, RefineSchedule, _Adam, refine, saved_precision
 from octcl.host.target import read_target
@@ -123,6 +124,12 @@ def test_kept_lpips_gradient_is_reused(layers_path, uniform_levels):
     kept_at = (uniform_levels + rng.random(uniform_levels.shape)) / 256.0
     elsewhere = np.clip(kept_at + rng.normal(0, 0.02, kept_at.shape), 0, 1)
     computed, kept = loss(kept_at), loss(kept_at, lpips="keep")
+    # The gradient through the maps' copies (AlexNet with oneDNN) is autograd's through the whole graph.
+    d = torch.tensor(kept_at, dtype=loss.dtype, requires_grad=True)
+    scan = torch.as_tensor(quantise(kept_at) / 255.0, dtype=loss.dtype) + (QUANTISER_SLOPE * d
+                                                                          - (QUANTISER_SLOPE * d).detach())
+    sum(getattr(weights, name) * term for name, term in loss.terms(scan).items()).backward()
+    np.testing.assert_allclose(computed.grad_display, d.grad.numpy(), atol=1e-5 * np.abs(d.grad.numpy()).max())
     assert kept.loss == pytest.approx(computed.loss, rel=1e-6) and kept.terms == pytest.approx(computed.terms)
     np.testing.assert_allclose(kept.grad_display, computed.grad_display,
                                atol=1e-5 * np.abs(computed.grad_display).max())
