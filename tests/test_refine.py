@@ -276,19 +276,19 @@ def test_a_stalled_run_stops(stage2_phantom, layers_target):
     still = Phase(6, 0.0, 0.0, lpips=False)
     schedule = RefineSchedule(phases=(still,), restarts=(Phase(4, 0.0, 0.0, lpips=False), still),
                               score_every=2, patience=1)
-    result = refine(stage2_phantom, layers_target, schedule, threads=1)
+    result = refine(stage2_phantom, layers_target, schedule, threads=2)
     assert result.iterations == 2 + 2 and result.stop_reason == "converged"
     scored = [(entry["stage"], entry["iteration"]) for entry in result.trace if entry["score"] is not None]
     assert scored == [("initial", 0), ("refine", 2), ("restart 1", 2)]
     assert result.components == result.initial_components
-    whole = refine(stage2_phantom, layers_target, schedule.fixed_length().truncated(6 + 2), threads=1)
+    whole = refine(stage2_phantom, layers_target, schedule.fixed_length().truncated(6 + 2), threads=2)
     assert whole.iterations == 6 + 2 and whole.stop_reason == "schedule"
     assert max(entry["iteration"] for entry in whole.trace if entry["stage"] == "refine") == 6
     # Restarts that gain are repeated until the iterations the stalled main
     # run left are spent.
     gaining = RefineSchedule(phases=(still,), restarts=(Phase(2, 0.01, 0.02, lpips=False),), score_every=2,
                              patience=1, min_gain=1e-12)
-    repeated = refine(stage2_phantom, layers_target, gaining, threads=1)
+    repeated = refine(stage2_phantom, layers_target, gaining, threads=2)
     assert repeated.iterations == 2 + 3 * 2 == gaining.total_iterations and repeated.stop_reason == "schedule"
     assert {entry["stage"] for entry in repeated.trace} == {"initial", "refine", "restart 1", "restart 2", "restart 3"}
     assert repeated.components["mean"] > repeated.initial_components["mean"]
