@@ -288,14 +288,16 @@ class DisplayLoss:
             loss = weighted_sum(terms)
         value = loss.item()
         if wanted & set(_LPIPS_TERMS):  # AlexNet with oneDNN on the maps' copies (Notes)
-            copies = {m: images[m].detach().requires_grad_(True) for m in set(_LPIPS_TERMS.values()) & set(images)}
+            # In _LPIPS_TERMS's order, so that the sums below add up the same way in every process.
+            copies = {_LPIPS_TERMS[name]: images[_LPIPS_TERMS[name]].detach().requires_grad_(True)
+                      for name in _LPIPS_TERMS if name in wanted}
             lpips_terms = self._lpips_terms(copies, wanted)
             lpips_loss = weighted_sum(lpips_terms)
-            grads = dict(zip(copies, torch.autograd.grad(lpips_loss, list(copies.values()), allow_unused=True)))
+            grads = dict(zip(copies, torch.autograd.grad(lpips_loss, list(copies.values()))))
             terms.update(lpips_terms)
             value += lpips_loss.item()
             with _onednn_off():
-                through_maps = sum(((images[m] * g).sum() for m, g in grads.items() if g is not None), 0 * d.sum())
+                through_maps = sum(((images[m] * g).sum() for m, g in grads.items()), 0 * d.sum())
                 if lpips == "keep":
                     lpips_grad, = torch.autograd.grad(through_maps, d, retain_graph=True)
                     self._kept_lpips = (lpips_loss.item(), lpips_grad.numpy().astype(np.float64),
