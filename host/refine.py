@@ -547,14 +547,12 @@ class _Refiner:
         """(loss value, ∂loss/∂u, ∂loss/∂z) of the last :meth:`render` (with for_adjoint).
 
         ``lpips`` chooses the loss with or without its LPIPS terms;
-        ``lpips_mode`` is :class:`DisplayLoss`'s ``lpips`` argument for the former.
+        ``lpips_mode`` is :class:`DisplayLoss`'s ``lpips`` argument (``compute``
+        for the loss without them).
         """
         self.threads.before_call()
         start = time.perf_counter()
-        if lpips:
-            value = self._timed("loss", self.losses[True], rendering.display, lpips_mode)
-        else:
-            value = self._timed("loss", self.losses[False], rendering.display)
+        value = self._timed("loss", self.losses[lpips], rendering.display, lpips_mode)
         self.threads.after_call((lpips, lpips_mode), time.perf_counter() - start)
         grad_u, grad_z = self._timed("adjoint", self.kernels.adjoint, display_vjp(rendering, value.grad_display))
         return value, grad_u, grad_z

@@ -96,12 +96,10 @@ def development_set(out: Path, skin: int) -> dict[str, Path]:
 #: ``--schedules``: stage 3's schedule by name. ``fixed-length`` is the
 #: default's phases and restarts, each run to its whole length (the schedule
 #: before adaptive stopping); ``stall-rule`` adds to the default the main
-#: run's stall rule with a patience of 2 checkpoints; ``lpips-every-K``
-#: computes the LPIPS terms' gradient on every K-th step and reuses it
-#: between (host/refine.py).
+#: run's stall rule with a patience of 2 checkpoints (host/refine.py).
+#: Variants of the loss are compared by ``bench_refine.py``.
 SCHEDULES = {"default": "RefineSchedule()", "fixed-length": "RefineSchedule().fixed_length()",
-             "stall-rule": "RefineSchedule(patience=2)",
-             **{f"lpips-every-{k}": f"RefineSchedule(lpips_every={k})" for k in (2, 3)}}
+             "stall-rule": "RefineSchedule(patience=2)"}
 
 
 def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None,
@@ -338,27 +336,34 @@ def replay_restart_rule(trace: list[dict], total_s: float, min_gain: float) -> t
 
 def comparison_plot(rows: dict, reports: dict, schedules: list[str]) -> bytes:
     """PNG: one panel per scan, the best exact score against seconds of each of its runs."""
+    from octcl.host.batch.report import best_so_far
+
+    panels = {}
+    for run, row in rows.items():
+        label = f"{row.get('schedule', schedules[0])}, seed {row['seed']}"
+        panels.setdefault(row["scan"], []).append((*best_so_far(reports[run]["trace"]), label))
+    return panels_png(panels, "best exact score", columns=4, panel_size=(3.6, 2.8), markersize=3)
+
+
+def panels_png(panels: dict[str, list[tuple]], y_label: str, columns: int, panel_size: tuple[float, float],
+               markersize: float) -> bytes:
+    """PNG of a grid of panels, ``columns`` wide: per title, lines of (seconds, values, label)."""
     import matplotlib
 
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from octcl.host.batch.report import best_so_far
-
-    scans = list(dict.fromkeys(row["scan"] for row in rows.values()))
-    columns = min(len(scans), 4)
-    figure = Figure(figsize=(3.6 * columns, 2.8 * -(-len(scans) // columns)), dpi=100, layout="constrained")
-    axes = figure.subplots(-(-len(scans) // columns), columns, squeeze=False).ravel()
-    for panel, scan in zip(axes, scans):
-        for run, row in rows.items():
-            if row["scan"] == scan:
-                seconds, best = best_so_far(reports[run]["trace"])
-                label = f"{row.get('schedule', schedules[0])}, seed {row['seed']}"
-                panel.plot(seconds, best, marker=".", markersize=3, label=label)
-        panel.set(title=scan, xlabel="seconds", ylabel="best exact score")
+    columns = min(len(panels), columns)
+    rows = -(-len(panels) // columns)
+    figure = Figure(figsize=(panel_size[0] * columns, panel_size[1] * rows), dpi=100, layout="constrained")
+    axes = figure.subplots(rows, columns, squeeze=False).ravel()
+    for panel, (title, lines) in zip(axes, panels.items()):
+        for seconds, values, label in lines:
+            panel.plot(seconds, values, marker=".", markersize=markersize, label=label)
+        panel.set(title=title, xlabel="seconds", ylabel=y_label)
         panel.grid(alpha=0.3)
         panel.legend(fontsize=7)
-    for panel in axes[len(scans):]:
+    for panel in axes[len(panels):]:
         panel.set_visible(False)
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png")

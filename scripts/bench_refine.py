@@ -38,13 +38,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import io
 import json
 import sys
 from pathlib import Path
 
 
-from bench_invert import development_set
+from bench_invert import development_set, panels_png
 from octcl._io import atomic_write
 from octcl.host.invert import invert
 from octcl.host.loss import ExactScore
@@ -107,26 +106,9 @@ def summary_lines(results: dict) -> list[str]:
 
 def plot(results: dict) -> bytes:
     """PNG: per scan, each variant's iterate scores against seconds."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
-
-    columns = min(len(results), 3)
-    figure = Figure(figsize=(4.2 * columns, 3.0 * -(-len(results) // columns)), dpi=100, layout="constrained")
-    axes = figure.subplots(-(-len(results) // columns), columns, squeeze=False).ravel()
-    for panel, (scan, by_variant) in zip(axes, results.items()):
-        for variant, run in by_variant.items():
-            points = [(e["time_s"], e["score"]) for e in run["trace"] if e["score"] is not None]
-            panel.plot(*zip(*points), marker=".", markersize=4, label=variant)
-        panel.set(title=scan, xlabel="seconds", ylabel="exact score")
-        panel.grid(alpha=0.3)
-        panel.legend(fontsize=7)
-    for panel in axes[len(results):]:
-        panel.set_visible(False)
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png")
-    return buffer.getvalue()
+    panels = {scan: [(*zip(*[(e["time_s"], e["score"]) for e in run["trace"] if e["score"] is not None]), variant)
+                     for variant, run in by_variant.items()] for scan, by_variant in results.items()}
+    return panels_png(panels, "exact score", columns=3, panel_size=(4.2, 3.0), markersize=4)
 
 
 def main(argv=None) -> int:
