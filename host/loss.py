@@ -32,11 +32,12 @@ display D ∈ [0, 1] of the rendering:
 LPIPS (Zhang et al., CVPR 2018) compares unit-normalised AlexNet features;
 the target's features do not change during an inversion, so they are
 computed once and only the rendering goes through the network each call.
-LPIPS is still three quarters of a call (one AlexNet forward and backward
-per term: on two cores, 0.72 s for the full loss, 0.18 s without LPIPS,
-0.09–0.13 s per LPIPS term), so a call can instead keep the LPIPS terms'
-value and gradient and later calls reuse them (``lpips="keep"`` /
-``"reuse"``): while the display moves little, the gradient of the sum is
+LPIPS is still most of a call (one AlexNet forward and backward per term:
+on two cores, before AlexNet ran with oneDNN, 0.69–0.89 s a refinement
+step for the full loss and 0.16–0.20 s without LPIPS, :class:`LossWeights`),
+so a call can instead keep the LPIPS terms' value and gradient and later
+calls reuse them (``lpips="keep"`` / ``"reuse"``): while the display moves
+little, the gradient of the sum is
 then ∂(rest)/∂D at the new display plus ∂LPIPS/∂D at the kept one.
 Measured from the same starting phantoms (``scripts/bench_refine.py``,
 docs/benchmarks.md, "what the loss's LPIPS terms buy per second"), neither
