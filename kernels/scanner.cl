@@ -2,7 +2,8 @@
  * The Virtual Scanner (shared/physics.md §2) and its adjoint, in two
  * variants of the same maths:
  *
- *   render_forward / render_adjoint            one work-item per A-scan
+ *   render_forward / render_adjoint            one work-item per LANES
+ *                                              A-scans of a bin / per A-scan
  *                                              (CPUs: long sequential loops
  *                                              vectorise and cache well);
  *   render_forward_group / render_adjoint_group one work-group of WG_SIZE
@@ -96,25 +97,40 @@
 typedef double real;
 typedef double2 real2;      /* a double-word number (hi, lo) or an affine map (a, b) */
 typedef double2 complex_t;
-#if SPREAD_WIDTH <= 8
-typedef double8 taps_t;
-#define TAP_COUNT 8
-#else
-typedef double16 taps_t;
-#define TAP_COUNT 16
-#endif
 #else
 typedef float real;
 typedef float2 real2;
 typedef float2 complex_t;
-#if SPREAD_WIDTH <= 8
-typedef float8 taps_t;
-#define TAP_COUNT 8
+#endif
+
+/* Vector maths works on LANES reals at a time: 8 floats or 4 doubles, the
+ * 256 bits of an AVX2 register. (Wider vectors of doubles are passed
+ * differently without AVX-512, and PoCL's LLVM then fails to compile their
+ * builtins: exp, sqrt, fma, select.) A comparison of reals gives a
+ * lane_mask_t (−1 where it holds, 0 elsewhere); one of lane indices an int
+ * vector, widened by index_mask to the reals' mask. */
+#ifdef OCTCL_DOUBLE
+#define LANES 4
+typedef double4 lanes_t;
+typedef int4 lane_index_t;
+typedef long4 lane_mask_t;
+typedef long lane_flag_t;
+#define convert_lanes convert_double4
+#define index_mask(mask) convert_long4(mask)
+#define LANE_NUMBERS ((int4)(0, 1, 2, 3))
 #else
-typedef float16 taps_t;
-#define TAP_COUNT 16
+#define LANES 8
+typedef float8 lanes_t;
+typedef int8 lane_index_t;
+typedef int8 lane_mask_t;
+typedef int lane_flag_t;
+#define convert_lanes convert_float8
+#define index_mask(mask) (mask)
+#define LANE_NUMBERS ((int8)(0, 1, 2, 3, 4, 5, 6, 7))
 #endif
-#endif
+#define LANE(vector, l) (((real *)&(vector))[l])
+#define LANE_HOLDS(mask, l) (((lane_flag_t *)&(mask))[l])
+#define LANE_INDEX(vector, l) (((int *)&(vector))[l])
 
 typedef struct {
     int a_scans;          /* Nx */
@@ -241,7 +257,7 @@ static inline bool contributes(const Entry e, int i) {
     __global const Entry *entry, __global const int *list_start,                  \
     __global const real *transfer, __global const complex_t *twiddle
 
-/* ================================================ one work-item per A-scan */
+/* ============================ one work-item per A-scan or per LANES of them */
 
 /* In-place radix-2 FFT of length 1 << log2n on a private array:
  * a[k] ← Σ_n a[n]·exp(sign·2πi·k·n/len). twiddle[k] = exp(−2πi·k/GRID),
@@ -267,17 +283,17 @@ static void fft(complex_t *a, int log2n, int sign, __global const complex_t *twi
     }
 }
 
-/* The W spreading weights of a scatterer as one vector (zero past W), so
- * that the spreading loop vectorises on a CPU. */
-static inline taps_t spread_weights(real offset, real beta) {
-#if TAP_COUNT == 8
-    const taps_t lane = (taps_t)(0, 1, 2, 3, 4, 5, 6, 7);
-#else
-    const taps_t lane = (taps_t)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-#endif
-    const taps_t t = (offset + lane) * (real)(2.0 / SPREAD_WIDTH);
-    const taps_t weight = exp(beta * (sqrt(fmax(1 - t * t, (real)0)) - 1));
-    return lane < (real)SPREAD_WIDTH ? weight : (taps_t)0;
+/* The W spreading weights of a scatterer, weight[t] = ψ((offset + t)·2/W)
+ * for t < W, zero up to TAP_VECTORS·LANES, computed LANES at a time so that
+ * the maths vectorises on a CPU. */
+#define TAP_VECTORS ((SPREAD_WIDTH + LANES - 1) / LANES)
+static inline void spread_weights(real offset, real beta, lanes_t weight[TAP_VECTORS]) {
+    for (int k = 0; k < TAP_VECTORS; ++k) {
+        const lanes_t tap = convert_lanes(k * LANES + LANE_NUMBERS);
+        const lanes_t t = (offset + tap) * (real)(2.0 / SPREAD_WIDTH);
+        const lanes_t psi = exp(beta * (sqrt(fmax(1 - t * t, (real)0)) - 1));
+        weight[k] = select((lanes_t)0, psi, tap < (real)SPREAD_WIDTH);
+    }
 }
 
 /*
@@ -298,46 +314,95 @@ __kernel void ascan_scale(__global const int2 *window, __global const int *expon
  * Forward: complex A-scans a_scan[i·NZ + n], relative to 2^{scale_exponent[i]}.
  * If slot_data is not null, T of each visited pair within reach is stored
  * for the adjoint and the number of visited entries goes to stop_position.
+ *
+ * One work-item per LANES A-scans of a bin (ceil(P/LANES) work-items per
+ * bin): they share list c, so each entry is read once for all of them, its
+ * beam amplitudes, energies and transmissions are computed lane-wise in
+ * vector registers, and its spreading weights once for every lane it
+ * contributes to. Each lane does for its A-scan what one work-item per
+ * A-scan would, in the same order: the same sums, the same stopping rule.
+ * On a 2-core CPU (PoCL) this takes half the time of one work-item per
+ * A-scan, which read every entry and computed its weights P times
+ * (docs/benchmarks.md). grid_scratch holds each A-scan's GRID-point
+ * spreading grid.
  */
 __kernel void render_forward(const ScannerParams p,
                              SCENE_ARGUMENTS,
+                             __global complex_t *grid_scratch,
                              __global complex_t *a_scan, __global const int *scale_exponent,
                              __global complex_t *slot_data, __global int *stop_position) {
-    const int i = get_global_id(0);
-    if (i >= p.a_scans) return;
-    const int list = i / p.ascans_per_bin + 1; /* bins are shifted by one */
+    const int chunks = (p.ascans_per_bin + LANES - 1) / LANES; /* work-items per bin */
+    const int list = get_global_id(0) / chunks + 1;              /* bins are shifted by one */
+    const int lane0 = (int)(get_global_id(0) % chunks) * LANES;  /* the first lane's A-scan within its bin */
+    const int first = (list - 1) * p.ascans_per_bin + lane0;     /* ... and in the B-scan */
+    const int lanes = min(min(LANES, p.ascans_per_bin - lane0), p.a_scans - first);
+    if (lanes <= 0) return;
     const int begin = list_start[list], end = list_start[list + 1];
-    const int scale = scale_exponent[i];
-    __global complex_t *slot = slot_data + (size_t)(i % p.ascans_per_bin) * p.entries;
-
-    complex_t grid[GRID];
-    for (int l = 0; l < GRID; ++l) grid[l] = (complex_t)(0, 0);
-
-    real2 transmission = (real2)(1, 0);
-    int j = begin;
-    for (; j < end && transmission.x > p.min_transmission; ++j) {
-        const Entry e = entry[j];
-        const real d2 = squared_distance(p, i, e);
-        if (d2 >= p.shadow_d2) continue;
-        const real beam = beam_mantissa(p, d2, e.mantissa);
-        if (slot_data) slot[j].x = transmission.x;
-        if (contributes(e, i)) {
-            const complex_t c = (transmission.x * ldexp(beam, e.exponent - scale)) * e.carrier;
-            const taps_t w = spread_weights(e.tap_offset, p.es_beta);
-            const real *wv = (const real *)&w;
-            for (int t = 0; t < SPREAD_WIDTH; ++t) grid[(e.first_tap + t) & (GRID - 1)] += c * wv[t];
-        }
-        transmission = dw_mul(transmission, one_minus(shadow_energy(beam, e.exponent)));
+    const lane_index_t ascan = first + LANE_NUMBERS;
+    lane_index_t scale = NO_AMPLITUDE;
+    int stop[LANES];
+    for (int l = 0; l < lanes; ++l) {
+        LANE_INDEX(scale, l) = scale_exponent[first + l];
+        stop[l] = end - begin;
     }
-    if (stop_position) stop_position[i] = j - begin;
+    __global complex_t *grid = grid_scratch + (size_t)first * GRID;
+    for (int l = 0; l < lanes * GRID; ++l) grid[l] = (complex_t)(0, 0);
 
-    fft(grid, LOG2_GRID, -1, twiddle);
-    /* X[q] = H[q]·grid[s_q mod GRID], s_q = q (q ≤ NZ/2) or q − NZ; in place:
-     * q < NZ/2 reads its own index, q > NZ/2 reads q + NZ, not yet written. */
-    for (int q = 0; q < NZ; ++q)
-        grid[q] = transfer[q] * grid[q <= NZ / 2 ? q : q + NZ];
-    fft(grid, LOG2_NZ, +1, twiddle);
-    for (int n = 0; n < NZ; ++n) a_scan[(size_t)i * NZ + n] = grid[n];
+    lanes_t transmission = 1, transmission_lo = 0; /* T per lane, double-word (hi, lo) */
+    lane_mask_t active = index_mask(ascan < first + lanes);
+    for (int j = begin; j < end; ++j) {
+        const lane_mask_t stopping = active & (transmission <= p.min_transmission);
+        if (any(stopping)) {
+            for (int l = 0; l < lanes; ++l) if (LANE_HOLDS(stopping, l)) stop[l] = j - begin;
+            active &= ~stopping;
+            if (!any(active)) break;
+        }
+        const Entry e = entry[j];
+        /* d² as squared_distance computes it, per lane */
+        const lanes_t dx = convert_lanes(ascan - p.ascans_per_bin * (e.bin - 1)) * p.pitch_um - e.x_offset_um;
+        const lanes_t d2 = dx * dx + e.y_um * e.y_um;
+        const lane_mask_t reach = active & (d2 < p.shadow_d2);
+        if (!any(reach)) continue;
+        const lanes_t beam = exp(-d2 * p.inv_w0_sq) * e.mantissa;
+        if (slot_data)
+            for (int l = 0; l < lanes; ++l)
+                if (LANE_HOLDS(reach, l)) slot_data[(size_t)(lane0 + l) * p.entries + j].x = LANE(transmission, l);
+        const lane_mask_t contributing = reach & index_mask((ascan >= e.window_first) & (ascan <= e.window_last));
+        if (any(contributing)) {
+            const lanes_t relative = transmission * ldexp(beam, e.exponent - scale);
+            lanes_t w[TAP_VECTORS];
+            spread_weights(e.tap_offset, p.es_beta, w);
+            const real *wv = (const real *)w;
+            for (int l = 0; l < lanes; ++l) {
+                if (!LANE_HOLDS(contributing, l)) continue;
+                const complex_t c = LANE(relative, l) * e.carrier;
+                __global complex_t *row = grid + (size_t)l * GRID;
+                for (int t = 0; t < SPREAD_WIDTH; ++t) row[(e.first_tap + t) & (GRID - 1)] += c * wv[t];
+            }
+        }
+        /* T ← dw_mul(T, one_minus(t)) lane-wise, t = shadow_energy(beam, exponent) */
+        const lanes_t energy = fmin(ldexp(beam * beam, 2 * e.exponent), (real)1);
+        const lanes_t factor = 1 - energy, factor_lo = (1 - factor) - energy;
+        const lanes_t product = transmission * factor;
+        const lanes_t error = fma(transmission, factor, -product)
+                              + (transmission * factor_lo + transmission_lo * factor);
+        const lanes_t hi = product + error;
+        transmission_lo = select(transmission_lo, error - (hi - product), reach);
+        transmission = select(transmission, hi, reach);
+    }
+
+    for (int l = 0; l < lanes; ++l) {
+        const int i = first + l;
+        if (stop_position) stop_position[i] = stop[l];
+        complex_t row[GRID];
+        for (int k = 0; k < GRID; ++k) row[k] = grid[(size_t)l * GRID + k];
+        fft(row, LOG2_GRID, -1, twiddle);
+        /* X[q] = H[q]·grid[s_q mod GRID], s_q = q (q ≤ NZ/2) or q − NZ; in place:
+         * q < NZ/2 reads its own index, q > NZ/2 reads q + NZ, not yet written. */
+        for (int q = 0; q < NZ; ++q) row[q] = transfer[q] * row[q <= NZ / 2 ? q : q + NZ];
+        fft(row, LOG2_NZ, +1, twiddle);
+        for (int n = 0; n < NZ; ++n) a_scan[(size_t)i * NZ + n] = row[n];
+    }
 }
 
 /*
@@ -386,8 +451,9 @@ __kernel void render_adjoint(const ScannerParams p,
         const real transmission = slot[j].x;
         real grad_u = 0, grad_z = 0, grad_transmission = 0;
         if (contributes(e, i)) {
-            const taps_t w = spread_weights(e.tap_offset, p.es_beta);
-            const real *wv = (const real *)&w;
+            lanes_t w[TAP_VECTORS];
+            spread_weights(e.tap_offset, p.es_beta, w);
+            const real *wv = (const real *)w;
             complex_t c_bar = (complex_t)(0, 0), c_bar_s = (complex_t)(0, 0);
             for (int t = 0; t < SPREAD_WIDTH; ++t) {
                 const int l = (e.first_tap + t) & (GRID - 1);

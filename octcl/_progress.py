@@ -23,8 +23,6 @@ import sys
 import threading
 import time
 
-from tqdm import tqdm
-
 #: Least seconds between two plain progress lines on a non-terminal stream.
 PLAIN_INTERVAL_S = 30.0
 #: Least seconds between two redraws of the terminal bar.
@@ -133,6 +131,10 @@ class ProgressDisplay:
         known = percent is not None
         bar_format = ("{desc} {percentage:3.0f}%|{bar}| " if known else "{desc}  ") + text
         if self._bar is None:
+            # Imported here: tqdm's import (its version lookup through importlib.metadata)
+            # is 35 ms of every command's start-up, and only a terminal bar needs it.
+            from tqdm import tqdm
+
             self._bar = tqdm(total=100 if known else None, file=self.stream, dynamic_ncols=True,
                              leave=True, desc=self.label, mininterval=0, bar_format=bar_format)
         if known and self._bar.total:

@@ -12,9 +12,11 @@ phantom's overall energy (``kernels/scanner.cl``, "Scale"). The kernels do
 the per-scatterer work.
 
 Two kernel variants compute the same maths (``kernels/scanner.cl``): one
-work-item per A-scan (``"work-item"``, the default on CPU devices) and one
-work-group per A-scan (``"work-group"``, the default on GPUs and other
-accelerators): with 512 A-scans the first launches 512 work-items, the second
+work-item per A-scan (``"work-item"``, the default on CPU devices; its forward
+pass takes 8 float32 or 4 float64 A-scans of a bin per work-item, one vector
+lane each) and one work-group per A-scan (``"work-group"``, the default on
+GPUs and other accelerators): with 512 A-scans the first launches 512
+work-items (64 for the float32 forward pass at 8 A-scans a bin), the second
 512·WG_SIZE (65,536 at the default 128).
 
 During refinement x and y stay fixed while z and E change, so everything that
@@ -391,8 +393,18 @@ class ScannerKernels:
         if for_adjoint or self.variant == "work-group":  # the work-group variant gathers from the slots
             slot_data = self._buffer("slots", self.ascans_per_bin * self.entries * itemsize)
             stop_position = self._buffer("stop_position", nx * 4)
-        self._launch(self._render_forward, self._params, *self._scene_arguments(), a_scan,
-                     scale_exponent, slot_data, stop_position)
+        if self.variant == "work-group":
+            self._launch(self._render_forward, self._params, *self._scene_arguments(), a_scan,
+                         scale_exponent, slot_data, stop_position)
+        else:
+            # One work-item per LANES A-scans of a bin (LANES in kernels/scanner.cl: 256-bit
+            # vectors), each a work-group of its own: there are only bins·P/LANES of them
+            # (64 for 512 A-scans), and PoCL would otherwise pack 16 into one group, one core.
+            lanes = 4 if self.settings.double else 8
+            work_items = (self.bins - 2) * -(-self.ascans_per_bin // lanes)
+            grid_scratch = self._buffer("grid_scratch", nx * self.grid * itemsize)
+            self._render_forward(self.queue, (work_items,), (1,), self._params, *self._scene_arguments(),
+                                 grid_scratch, a_scan, scale_exponent, slot_data, stop_position)
         result = np.empty((nx, nz), dtype=self.complex)
         exponent = np.empty(nx, dtype=np.int32)
         self._cl.enqueue_copy(self.queue, result, a_scan)

@@ -72,6 +72,14 @@ def test_random_scene_matches_reference(precision, tolerance, kernels32, kernels
     assert np.mean(index_diff == 0) >= 0.999 and np.abs(index_diff).max() <= 1
 
 
+@pytest.mark.parametrize("double, tolerance", [(False, 1e-5), (True, 1e-7)])
+def test_the_widest_spreading_builds_and_matches_the_reference(double, tolerance):
+    """W = 16: the work-item kernels compute 16 weights in 256-bit pieces (8 floats, 4 doubles),
+    the widest that PoCL's LLVM compiles the vector builtins for without AVX-512."""
+    kernels = ScannerKernels(NARROW, KernelSettings(spread_width=16, double=double, variant="work-item"))
+    compare(kernels, random_phantom(2000, np.random.default_rng(4)), tolerance)
+
+
 def test_phase_error_below_a_milliradian_up_to_the_bottom(kernels32):
     """Float32 kernels keep the carrier phase of deep scatterers: the host reduces φ = −2·k0·z in float64."""
     for z_um in (0.3, 700.123456, 1535.987654, 1536.0):
