@@ -3,9 +3,9 @@
  * variants of the same maths:
  *
  *   render_forward / render_adjoint            one work-item per LANES
- *                                              A-scans of a bin / per A-scan
- *                                              (CPUs: long sequential loops
- *                                              vectorise and cache well);
+ *                                              A-scans of a bin (CPUs: long
+ *                                              sequential loops vectorise
+ *                                              and cache well);
  *   render_forward_group / render_adjoint_group one work-group of WG_SIZE
  *                                              work-items per A-scan (GPUs:
  *                                              scans, gathers and FFTs in
@@ -257,7 +257,7 @@ static inline bool contributes(const Entry e, int i) {
     __global const Entry *entry, __global const int *list_start,                  \
     __global const real *transfer, __global const complex_t *twiddle
 
-/* ============================ one work-item per A-scan or per LANES of them */
+/* ==================================== one work-item per LANES A-scans */
 
 /* In-place radix-2 FFT of length 1 << log2n on a private array:
  * a[k] ← Σ_n a[n]·exp(sign·2πi·k·n/len). twiddle[k] = exp(−2πi·k/GRID),
@@ -310,78 +310,112 @@ __kernel void ascan_scale(__global const int2 *window, __global const int *expon
     for (int i = window[m].x; i <= window[m].y; ++i) atomic_max(&scale_exponent[i], exponent[m]);
 }
 
+/* The LANES A-scans of bin list − 1 that a work-item of render_forward /
+ * render_adjoint takes: ceil(P/LANES) work-items per bin, the A-scans
+ * first … first + lanes − 1 (fewer than LANES in a bin's last work-item
+ * when LANES does not divide P). They share list c, so each entry is read
+ * once for all of them, its beam amplitudes, energies and transmissions
+ * are computed lane-wise in vector registers, and its spreading weights
+ * once for every lane it contributes to. Each lane does for its A-scan
+ * what one work-item per A-scan would, in the same order: the same sums,
+ * the same stopping rule. */
+typedef struct {
+    int list;        /* c, the bin's list (bins are shifted by one) */
+    int lane0;       /* the first lane's A-scan within its bin: its slot row */
+    int first;       /* ... and within the B-scan */
+    int lanes;       /* A-scans taken, ≤ LANES; ≤ 0 for a work-item past the last */
+    lane_index_t ascan; /* first + 0 … LANES − 1 */
+} LaneBlock;
+
+static inline LaneBlock lane_block(const ScannerParams p) {
+    const int chunks = (p.ascans_per_bin + LANES - 1) / LANES;
+    LaneBlock b;
+    b.list = get_global_id(0) / chunks + 1;
+    b.lane0 = (int)(get_global_id(0) % chunks) * LANES;
+    b.first = (b.list - 1) * p.ascans_per_bin + b.lane0;
+    b.lanes = min(min(LANES, p.ascans_per_bin - b.lane0), p.a_scans - b.first);
+    b.ascan = b.first + LANE_NUMBERS;
+    return b;
+}
+
+/* squared_distance for each lane's A-scan. */
+static inline lanes_t squared_distance_lanes(const ScannerParams p, lane_index_t ascan, const Entry e) {
+    const lanes_t dx = convert_lanes(ascan - p.ascans_per_bin * (e.bin - 1)) * p.pitch_um - e.x_offset_um;
+    return dx * dx + e.y_um * e.y_um;
+}
+
+/* contributes for each lane's A-scan. */
+static inline lane_mask_t contributes_lanes(const Entry e, lane_index_t ascan) {
+    return index_mask((ascan >= e.window_first) & (ascan <= e.window_last));
+}
+
+/* shadow_energy of each lane's beam mantissa. */
+static inline lanes_t shadow_energy_lanes(lanes_t beam, int exponent) {
+    return fmin(ldexp(beam * beam, 2 * exponent), (real)1);
+}
+
+/* The scale exponents of the block's A-scans (NO_AMPLITUDE past the last). */
+static inline lane_index_t scale_lanes(const LaneBlock b, __global const int *scale_exponent) {
+    lane_index_t scale = NO_AMPLITUDE;
+    for (int l = 0; l < b.lanes; ++l) LANE_INDEX(scale, l) = scale_exponent[b.first + l];
+    return scale;
+}
+
 /*
  * Forward: complex A-scans a_scan[i·NZ + n], relative to 2^{scale_exponent[i]}.
  * If slot_data is not null, T of each visited pair within reach is stored
  * for the adjoint and the number of visited entries goes to stop_position.
- *
- * One work-item per LANES A-scans of a bin (ceil(P/LANES) work-items per
- * bin): they share list c, so each entry is read once for all of them, its
- * beam amplitudes, energies and transmissions are computed lane-wise in
- * vector registers, and its spreading weights once for every lane it
- * contributes to. Each lane does for its A-scan what one work-item per
- * A-scan would, in the same order: the same sums, the same stopping rule.
- * On a 2-core CPU (PoCL) this takes half the time of one work-item per
- * A-scan, which read every entry and computed its weights P times
- * (docs/benchmarks.md). grid_scratch holds each A-scan's GRID-point
- * spreading grid.
+ * One work-item per LANES A-scans of a bin (LaneBlock); grid_scratch holds
+ * each A-scan's GRID-point spreading grid. On a 2-core CPU (PoCL) this
+ * takes a third of the time of one work-item per A-scan, which read every
+ * entry and computed its weights P times (docs/benchmarks.md).
  */
 __kernel void render_forward(const ScannerParams p,
                              SCENE_ARGUMENTS,
-                             __global complex_t *grid_scratch,
                              __global complex_t *a_scan, __global const int *scale_exponent,
-                             __global complex_t *slot_data, __global int *stop_position) {
-    const int chunks = (p.ascans_per_bin + LANES - 1) / LANES; /* work-items per bin */
-    const int list = get_global_id(0) / chunks + 1;              /* bins are shifted by one */
-    const int lane0 = (int)(get_global_id(0) % chunks) * LANES;  /* the first lane's A-scan within its bin */
-    const int first = (list - 1) * p.ascans_per_bin + lane0;     /* ... and in the B-scan */
-    const int lanes = min(min(LANES, p.ascans_per_bin - lane0), p.a_scans - first);
-    if (lanes <= 0) return;
-    const int begin = list_start[list], end = list_start[list + 1];
-    const lane_index_t ascan = first + LANE_NUMBERS;
-    lane_index_t scale = NO_AMPLITUDE;
+                             __global complex_t *slot_data, __global int *stop_position,
+                             __global complex_t *grid_scratch) {
+    const LaneBlock b = lane_block(p);
+    if (b.lanes <= 0) return;
+    const int begin = list_start[b.list], end = list_start[b.list + 1];
+    const lane_index_t scale = scale_lanes(b, scale_exponent);
     int stop[LANES];
-    for (int l = 0; l < lanes; ++l) {
-        LANE_INDEX(scale, l) = scale_exponent[first + l];
-        stop[l] = end - begin;
-    }
-    __global complex_t *grid = grid_scratch + (size_t)first * GRID;
-    for (int l = 0; l < lanes * GRID; ++l) grid[l] = (complex_t)(0, 0);
+    for (int l = 0; l < b.lanes; ++l) stop[l] = end - begin;
+    __global complex_t *grid = grid_scratch + (size_t)b.first * GRID;
+    for (int l = 0; l < b.lanes * GRID; ++l) grid[l] = (complex_t)(0, 0);
 
     lanes_t transmission = 1, transmission_lo = 0; /* T per lane, double-word (hi, lo) */
-    lane_mask_t active = index_mask(ascan < first + lanes);
+    lane_mask_t active = index_mask(b.ascan < b.first + b.lanes);
     for (int j = begin; j < end; ++j) {
         const lane_mask_t stopping = active & (transmission <= p.min_transmission);
         if (any(stopping)) {
-            for (int l = 0; l < lanes; ++l) if (LANE_HOLDS(stopping, l)) stop[l] = j - begin;
+            for (int l = 0; l < b.lanes; ++l) if (LANE_HOLDS(stopping, l)) stop[l] = j - begin;
             active &= ~stopping;
             if (!any(active)) break;
         }
         const Entry e = entry[j];
-        /* d² as squared_distance computes it, per lane */
-        const lanes_t dx = convert_lanes(ascan - p.ascans_per_bin * (e.bin - 1)) * p.pitch_um - e.x_offset_um;
-        const lanes_t d2 = dx * dx + e.y_um * e.y_um;
+        const lanes_t d2 = squared_distance_lanes(p, b.ascan, e);
         const lane_mask_t reach = active & (d2 < p.shadow_d2);
         if (!any(reach)) continue;
-        const lanes_t beam = exp(-d2 * p.inv_w0_sq) * e.mantissa;
+        const lanes_t beam = exp(-d2 * p.inv_w0_sq) * e.mantissa; /* beam_mantissa */
         if (slot_data)
-            for (int l = 0; l < lanes; ++l)
-                if (LANE_HOLDS(reach, l)) slot_data[(size_t)(lane0 + l) * p.entries + j].x = LANE(transmission, l);
-        const lane_mask_t contributing = reach & index_mask((ascan >= e.window_first) & (ascan <= e.window_last));
+            for (int l = 0; l < b.lanes; ++l)
+                if (LANE_HOLDS(reach, l)) slot_data[(size_t)(b.lane0 + l) * p.entries + j].x = LANE(transmission, l);
+        const lane_mask_t contributing = reach & contributes_lanes(e, b.ascan);
         if (any(contributing)) {
             const lanes_t relative = transmission * ldexp(beam, e.exponent - scale);
             lanes_t w[TAP_VECTORS];
             spread_weights(e.tap_offset, p.es_beta, w);
             const real *wv = (const real *)w;
-            for (int l = 0; l < lanes; ++l) {
+            for (int l = 0; l < b.lanes; ++l) {
                 if (!LANE_HOLDS(contributing, l)) continue;
                 const complex_t c = LANE(relative, l) * e.carrier;
                 __global complex_t *row = grid + (size_t)l * GRID;
                 for (int t = 0; t < SPREAD_WIDTH; ++t) row[(e.first_tap + t) & (GRID - 1)] += c * wv[t];
             }
         }
-        /* T ← dw_mul(T, one_minus(t)) lane-wise, t = shadow_energy(beam, exponent) */
-        const lanes_t energy = fmin(ldexp(beam * beam, 2 * e.exponent), (real)1);
+        /* T ← dw_mul(T, one_minus(t)) lane-wise */
+        const lanes_t energy = shadow_energy_lanes(beam, e.exponent);
         const lanes_t factor = 1 - energy, factor_lo = (1 - factor) - energy;
         const lanes_t product = transmission * factor;
         const lanes_t error = fma(transmission, factor, -product)
@@ -391,8 +425,8 @@ __kernel void render_forward(const ScannerParams p,
         transmission = select(transmission, hi, reach);
     }
 
-    for (int l = 0; l < lanes; ++l) {
-        const int i = first + l;
+    for (int l = 0; l < b.lanes; ++l) {
+        const int i = b.first + l;
         if (stop_position) stop_position[i] = stop[l];
         complex_t row[GRID];
         for (int k = 0; k < GRID; ++k) row[k] = grid[(size_t)l * GRID + k];
@@ -408,69 +442,97 @@ __kernel void render_forward(const ScannerParams p,
 /*
  * Adjoint: given a_scan_bar (Ā·2^{scale_exponent[i]}, the layout of a_scan),
  * write every slot of the A-scan: (∂L/∂u, ∂L/∂z) of the pair for visited
- * pairs within reach, 0 for the others.
+ * pairs within reach, 0 for the others. One work-item per LANES A-scans of
+ * a bin (LaneBlock); grid_scratch holds each A-scan's two grid adjoints,
+ * b̄ then b̄', 2·GRID points.
  */
 __kernel void render_adjoint(const ScannerParams p,
                              SCENE_ARGUMENTS,
                              __global const complex_t *a_scan_bar, __global const int *scale_exponent,
-                             __global complex_t *slot_data, __global const int *stop_position) {
-    const int i = get_global_id(0);
-    if (i >= p.a_scans) return;
-    const int list = i / p.ascans_per_bin + 1;
-    const int begin = list_start[list], end = list_start[list + 1];
-    const int stop = begin + stop_position[i];
-    const int scale = scale_exponent[i];
-    __global complex_t *slot = slot_data + (size_t)(i % p.ascans_per_bin) * p.entries;
-    for (int j = stop; j < end; ++j) slot[j] = (complex_t)(0, 0);
+                             __global complex_t *slot_data, __global const int *stop_position,
+                             __global complex_t *grid_scratch) {
+    const LaneBlock b = lane_block(p);
+    if (b.lanes <= 0) return;
+    const int begin = list_start[b.list], end = list_start[b.list + 1];
+    const lane_index_t scale = scale_lanes(b, scale_exponent);
+    lane_index_t stop = begin; /* lanes past the last stop at once */
+    for (int l = 0; l < b.lanes; ++l) {
+        const int i = b.first + l;
+        LANE_INDEX(stop, l) = begin + stop_position[i];
+        __global complex_t *slot = slot_data + (size_t)(b.lane0 + l) * p.entries;
+        for (int j = LANE_INDEX(stop, l); j < end; ++j) slot[j] = (complex_t)(0, 0);
 
-    /* X̄ = FFT(Ā)·H, then the two grid adjoints b̄ = IFFT(X̄), b̄' = IFFT(s·X̄). */
-    complex_t grid_bar[GRID], grid_bar_s[GRID];
-    for (int l = 0; l < GRID; ++l) {
-        grid_bar[l] = l < NZ ? a_scan_bar[(size_t)i * NZ + l] : (complex_t)(0, 0);
-        grid_bar_s[l] = (complex_t)(0, 0);
+        /* X̄ = FFT(Ā)·H, then the two grid adjoints b̄ = IFFT(X̄), b̄' = IFFT(s·X̄). */
+        complex_t grid_bar[GRID], grid_bar_s[GRID];
+        for (int k = 0; k < GRID; ++k) {
+            grid_bar[k] = k < NZ ? a_scan_bar[(size_t)i * NZ + k] : (complex_t)(0, 0);
+            grid_bar_s[k] = (complex_t)(0, 0);
+        }
+        fft(grid_bar, LOG2_NZ, -1, twiddle);
+        for (int q = NZ - 1; q >= 0; --q) { /* descending: q + NZ is written before q is read */
+            const complex_t x_bar = transfer[q] * grid_bar[q];
+            const int s = q <= NZ / 2 ? q : q - NZ;
+            const int k = q <= NZ / 2 ? q : q + NZ;
+            grid_bar[q] = (complex_t)(0, 0);
+            grid_bar[k] = x_bar;
+            grid_bar_s[k] = (real)s * x_bar;
+        }
+        fft(grid_bar, LOG2_GRID, +1, twiddle);
+        fft(grid_bar_s, LOG2_GRID, +1, twiddle);
+        __global complex_t *rows = grid_scratch + (size_t)i * 2 * GRID;
+        for (int k = 0; k < GRID; ++k) {
+            rows[k] = grid_bar[k];
+            rows[GRID + k] = grid_bar_s[k];
+        }
     }
-    fft(grid_bar, LOG2_NZ, -1, twiddle);
-    for (int q = NZ - 1; q >= 0; --q) { /* descending: q + NZ is written before q is read */
-        const complex_t x_bar = transfer[q] * grid_bar[q];
-        const int s = q <= NZ / 2 ? q : q - NZ;
-        const int l = q <= NZ / 2 ? q : q + NZ;
-        grid_bar[q] = (complex_t)(0, 0);
-        grid_bar[l] = x_bar;
-        grid_bar_s[l] = (real)s * x_bar;
-    }
-    fft(grid_bar, LOG2_GRID, +1, twiddle);
-    fft(grid_bar_s, LOG2_GRID, +1, twiddle);
+    int last = begin; /* one past the deepest visited entry of any lane */
+    for (int l = 0; l < b.lanes; ++l) last = max(last, LANE_INDEX(stop, l));
 
-    real downstream = 0; /* D: sensitivity to the transmission just below the visited scatterer */
-    for (int j = stop - 1; j >= begin; --j) {
+    lanes_t downstream = 0; /* D per lane: sensitivity to the transmission just below the visited scatterer */
+    for (int j = last - 1; j >= begin; --j) {
+        const lane_mask_t visited = index_mask(j < stop);
         const Entry e = entry[j];
-        const real d2 = squared_distance(p, i, e);
-        if (d2 >= p.shadow_d2) { slot[j] = (complex_t)(0, 0); continue; }
-        const real beam = beam_mantissa(p, d2, e.mantissa);
-        const real energy = shadow_energy(beam, e.exponent);
-        const real transmission = slot[j].x;
-        real grad_u = 0, grad_z = 0, grad_transmission = 0;
-        if (contributes(e, i)) {
+        const lanes_t d2 = squared_distance_lanes(p, b.ascan, e);
+        const lane_mask_t reach = visited & (d2 < p.shadow_d2);
+        lanes_t transmission = 0;
+        for (int l = 0; l < b.lanes; ++l) {
+            __global complex_t *slot = slot_data + (size_t)(b.lane0 + l) * p.entries + j;
+            if (LANE_HOLDS(reach, l)) LANE(transmission, l) = slot->x;
+            else if (LANE_HOLDS(visited, l)) *slot = (complex_t)(0, 0);
+        }
+        if (!any(reach)) continue;
+        const lanes_t beam = exp(-d2 * p.inv_w0_sq) * e.mantissa; /* beam_mantissa */
+        const lanes_t energy = shadow_energy_lanes(beam, e.exponent);
+        lanes_t grad_u = 0, grad_z = 0, grad_transmission = 0;
+        const lane_mask_t contributing = reach & contributes_lanes(e, b.ascan);
+        if (any(contributing)) {
             lanes_t w[TAP_VECTORS];
             spread_weights(e.tap_offset, p.es_beta, w);
             const real *wv = (const real *)w;
-            complex_t c_bar = (complex_t)(0, 0), c_bar_s = (complex_t)(0, 0);
-            for (int t = 0; t < SPREAD_WIDTH; ++t) {
-                const int l = (e.first_tap + t) & (GRID - 1);
-                c_bar += wv[t] * grid_bar[l];
-                c_bar_s += wv[t] * grid_bar_s[l];
+            const lanes_t relative = ldexp(beam, e.exponent - scale);
+            for (int l = 0; l < b.lanes; ++l) {
+                if (!LANE_HOLDS(contributing, l)) continue;
+                __global const complex_t *grid_bar = grid_scratch + (size_t)(b.first + l) * 2 * GRID;
+                __global const complex_t *grid_bar_s = grid_bar + GRID;
+                complex_t c_bar = (complex_t)(0, 0), c_bar_s = (complex_t)(0, 0);
+                for (int t = 0; t < SPREAD_WIDTH; ++t) {
+                    const int k = (e.first_tap + t) & (GRID - 1);
+                    c_bar += wv[t] * grid_bar[k];
+                    c_bar_s += wv[t] * grid_bar_s[k];
+                }
+                const real v = LANE(transmission, l) * LANE(relative, l);
+                const real r = cconj_mul(c_bar, e.carrier).x;  /* ∂L/∂v */
+                LANE(grad_u, l) = r * v / 2;
+                /* Re(−2i·v·e^{iφ}·(k0·conj(c̄) + δk·conj(c̄'))) = 2v·Im(e^{iφ}·conj(k0·c̄ + δk·c̄')) */
+                LANE(grad_z, l) = 2 * v * cconj_mul(p.k0 * c_bar + p.dk * c_bar_s, e.carrier).y;
+                LANE(grad_transmission, l) = r * LANE(relative, l);
             }
-            const real relative = ldexp(beam, e.exponent - scale);
-            const real v = transmission * relative;
-            const real r = cconj_mul(c_bar, e.carrier).x;  /* ∂L/∂v */
-            grad_u = r * v / 2;
-            /* Re(−2i·v·e^{iφ}·(k0·conj(c̄) + δk·conj(c̄'))) = 2v·Im(e^{iφ}·conj(k0·c̄ + δk·c̄')) */
-            grad_z = 2 * v * cconj_mul(p.k0 * c_bar + p.dk * c_bar_s, e.carrier).y;
-            grad_transmission = r * relative;
         }
-        if (energy < 1) grad_u -= transmission * downstream * energy;
-        slot[j] = (complex_t)(grad_u, grad_z);
-        downstream = grad_transmission + (1 - energy) * downstream;
+        grad_u -= select((lanes_t)0, transmission * downstream * energy, energy < 1);
+        for (int l = 0; l < b.lanes; ++l)
+            if (LANE_HOLDS(reach, l))
+                slot_data[(size_t)(b.lane0 + l) * p.entries + j] = (complex_t)(LANE(grad_u, l), LANE(grad_z, l));
+        downstream = select(downstream, grad_transmission + (1 - energy) * downstream, reach);
     }
 }
 

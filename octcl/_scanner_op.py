@@ -12,12 +12,11 @@ phantom's overall energy (``kernels/scanner.cl``, "Scale"). The kernels do
 the per-scatterer work.
 
 Two kernel variants compute the same maths (``kernels/scanner.cl``): one
-work-item per A-scan (``"work-item"``, the default on CPU devices; its forward
-pass takes 8 float32 or 4 float64 A-scans of a bin per work-item, one vector
-lane each) and one work-group per A-scan (``"work-group"``, the default on
-GPUs and other accelerators): with 512 A-scans the first launches 512
-work-items (64 for the float32 forward pass at 8 A-scans a bin), the second
-512·WG_SIZE (65,536 at the default 128).
+work-item per 8 float32 or 4 float64 A-scans of a bin, one vector lane each
+(``"work-item"``, the default on CPU devices) and one work-group per A-scan
+(``"work-group"``, the default on GPUs and other accelerators): with 512
+A-scans the first launches 64 work-items (float32, 8 A-scans a bin), the
+second 512·WG_SIZE (65,536 at the default 128).
 
 During refinement x and y stay fixed while z and E change, so everything that
 depends on x and y alone (bins, offsets, contribution windows) is computed
@@ -371,13 +370,23 @@ class ScannerKernels:
         return order
 
     # ------------------------------------------------------------- kernels
-    def _launch(self, kernel, *arguments) -> None:
-        """One work-item or one work-group per A-scan, by variant."""
+    def _launch(self, kernel, *arguments, scratch_points: int = 0) -> None:
+        """Launch a scanner kernel: one work-group per A-scan (work-group variant), or one
+        work-item per LANES A-scans of a bin (work-item variant, LANES in kernels/scanner.cl:
+        8 floats or 4 doubles, 256-bit vectors), whose kernels take one more argument, a
+        scratch buffer of ``scratch_points`` complex numbers per A-scan.
+
+        Each of those work-items is a work-group of its own: there are only bins·P/LANES of
+        them (64 for 512 A-scans), and PoCL would otherwise pack 16 into one group, one core.
+        """
         nx = self.config.a_scans
         if self.variant == "work-group":
             kernel(self.queue, (nx * self.work_group_size,), (self.work_group_size,), *arguments)
         else:
-            kernel(self.queue, (nx,), None, *arguments)
+            lanes = 4 if self.settings.double else 8
+            work_items = (self.bins - 2) * -(-self.ascans_per_bin // lanes)
+            scratch = self._buffer("grid_scratch", nx * scratch_points * np.dtype(self.complex).itemsize)
+            kernel(self.queue, (work_items,), (1,), *arguments, scratch)
 
     def forward(self, for_adjoint: bool = False) -> np.ndarray:
         """Complex A-scans A[n, i], shape (Nz, Nx), complex128.
@@ -393,18 +402,8 @@ class ScannerKernels:
         if for_adjoint or self.variant == "work-group":  # the work-group variant gathers from the slots
             slot_data = self._buffer("slots", self.ascans_per_bin * self.entries * itemsize)
             stop_position = self._buffer("stop_position", nx * 4)
-        if self.variant == "work-group":
-            self._launch(self._render_forward, self._params, *self._scene_arguments(), a_scan,
-                         scale_exponent, slot_data, stop_position)
-        else:
-            # One work-item per LANES A-scans of a bin (LANES in kernels/scanner.cl: 256-bit
-            # vectors), each a work-group of its own: there are only bins·P/LANES of them
-            # (64 for 512 A-scans), and PoCL would otherwise pack 16 into one group, one core.
-            lanes = 4 if self.settings.double else 8
-            work_items = (self.bins - 2) * -(-self.ascans_per_bin // lanes)
-            grid_scratch = self._buffer("grid_scratch", nx * self.grid * itemsize)
-            self._render_forward(self.queue, (work_items,), (1,), self._params, *self._scene_arguments(),
-                                 grid_scratch, a_scan, scale_exponent, slot_data, stop_position)
+        self._launch(self._render_forward, self._params, *self._scene_arguments(), a_scan,
+                     scale_exponent, slot_data, stop_position, scratch_points=self.grid)
         result = np.empty((nx, nz), dtype=self.complex)
         exponent = np.empty(nx, dtype=np.int32)
         self._cl.enqueue_copy(self.queue, result, a_scan)
@@ -424,7 +423,8 @@ class ScannerKernels:
         self._fill("a_scan_bar", np.ascontiguousarray(a_bar.T, dtype=self.complex))
         self._launch(self._render_adjoint, self._params, *self._scene_arguments(),
                      self._buffers["a_scan_bar"][0], self._buffers["scale_exponent"][0],
-                     self._buffers["slots"][0], self._buffers["stop_position"][0])
+                     self._buffers["slots"][0], self._buffers["stop_position"][0],
+                     scratch_points=2 * self.grid)
         if not self.count:
             return np.zeros(0), np.zeros(0)
         gradient = self._buffer("gradient", self.count * np.dtype(self.complex).itemsize)
