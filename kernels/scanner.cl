@@ -318,7 +318,8 @@ __kernel void ascan_scale(__global const int2 *window, __global const int *expon
  * are computed lane-wise in vector registers, and its spreading weights
  * once for every lane it contributes to. Each lane does for its A-scan
  * what one work-item per A-scan would, in the same order: the same sums,
- * the same stopping rule. */
+ * the same stopping rule (an inversion writes the same file, byte for
+ * byte, as with one work-item per A-scan: docs/benchmarks.md). */
 typedef struct {
     int list;        /* c, the bin's list (bins are shifted by one) */
     int lane0;       /* the first lane's A-scan within its bin: its slot row */
@@ -347,6 +348,11 @@ static inline lanes_t squared_distance_lanes(const ScannerParams p, lane_index_t
 /* contributes for each lane's A-scan. */
 static inline lane_mask_t contributes_lanes(const Entry e, lane_index_t ascan) {
     return index_mask((ascan >= e.window_first) & (ascan <= e.window_last));
+}
+
+/* beam_mantissa for each lane's d². */
+static inline lanes_t beam_mantissa_lanes(const ScannerParams p, lanes_t d2, real mantissa) {
+    return exp(-d2 * p.inv_w0_sq) * mantissa;
 }
 
 /* shadow_energy of each lane's beam mantissa. */
@@ -397,7 +403,7 @@ __kernel void render_forward(const ScannerParams p,
         const lanes_t d2 = squared_distance_lanes(p, b.ascan, e);
         const lane_mask_t reach = active & (d2 < p.shadow_d2);
         if (!any(reach)) continue;
-        const lanes_t beam = exp(-d2 * p.inv_w0_sq) * e.mantissa; /* beam_mantissa */
+        const lanes_t beam = beam_mantissa_lanes(p, d2, e.mantissa);
         if (slot_data)
             for (int l = 0; l < b.lanes; ++l)
                 if (LANE_HOLDS(reach, l)) slot_data[(size_t)(b.lane0 + l) * p.entries + j].x = LANE(transmission, l);
@@ -501,7 +507,7 @@ __kernel void render_adjoint(const ScannerParams p,
             else if (LANE_HOLDS(visited, l)) *slot = (complex_t)(0, 0);
         }
         if (!any(reach)) continue;
-        const lanes_t beam = exp(-d2 * p.inv_w0_sq) * e.mantissa; /* beam_mantissa */
+        const lanes_t beam = beam_mantissa_lanes(p, d2, e.mantissa);
         const lanes_t energy = shadow_energy_lanes(beam, e.exponent);
         lanes_t grad_u = 0, grad_z = 0, grad_transmission = 0;
         const lane_mask_t contributing = reach & contributes_lanes(e, b.ascan);

@@ -80,6 +80,22 @@ def test_the_widest_spreading_builds_and_matches_the_reference(double, tolerance
     compare(kernels, random_phantom(2000, np.random.default_rng(4)), tolerance)
 
 
+@pytest.mark.parametrize("double, tolerance", [(False, 1e-5), (True, 1e-7)])
+def test_bins_that_lanes_do_not_divide(double, tolerance):
+    """A 13 µm beam makes bins of P = 10 A-scans, and 64 A-scans end in a bin of 4: the work-item
+    kernels' last lanes of a bin (10 = 8 + 2 floats, 4 + 4 + 2 doubles) and of the B-scan stay idle,
+    and forward and adjoint still agree with the reference and with the work-group variant."""
+    config = ScannerConfig(a_scans=64, xmax_um=384.0, beam_radius_um=13.0)
+    phantom = random_phantom(2000, np.random.default_rng(5), half_width_um=190.0)
+    gradients = []
+    for variant in VARIANTS:
+        kernels = ScannerKernels(config, KernelSettings(double=double, variant=variant))
+        assert kernels.ascans_per_bin == 10
+        gradients.append(compare(kernels, phantom, tolerance)[2:])
+    for item, group in zip(*gradients):
+        assert np.abs(item - group).max() <= 100 * tolerance * np.abs(group).max()
+
+
 def test_phase_error_below_a_milliradian_up_to_the_bottom(kernels32):
     """Float32 kernels keep the carrier phase of deep scatterers: the host reduces φ = −2·k0·z in float64."""
     for z_um in (0.3, 700.123456, 1535.987654, 1536.0):
