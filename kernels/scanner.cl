@@ -154,15 +154,13 @@ static inline complex_t cconj_mul(complex_t a, complex_t b) { /* conj(a)·b */
     return (complex_t)(a.x * b.x + a.y * b.y, a.x * b.y - a.y * b.x);
 }
 
+/* Macros rather than functions so that they take a real or a lanes_t alike:
+ * one definition for the work-group kernels' scalars and the work-item
+ * kernels' vector lanes. */
 /* exp(−d²/w0²)·mantissa: the beam amplitude without its binary exponent. */
-static inline real beam_mantissa(const ScannerParams p, real d2, real mantissa) {
-    return exp(-d2 * p.inv_w0_sq) * mantissa;
-}
-
+#define beam_mantissa(p, d2, mantissa) (exp(-(d2) * (p).inv_w0_sq) * (mantissa))
 /* t = min(b², 1), b = beam_mantissa·2^exponent: the absolute shadowing energy. */
-static inline real shadow_energy(real beam, int exponent) {
-    return fmin(ldexp(beam * beam, 2 * exponent), (real)1);
-}
+#define shadow_energy(beam, exponent) fmin(ldexp((beam) * (beam), 2 * (exponent)), (real)1)
 
 /* ψ(t) = exp(β·(sqrt(1 − t²) − 1)) at t = (offset + k)·2/W, offset = first − p. */
 static inline real spread_weight(real offset, int k, real beta) {
@@ -350,16 +348,6 @@ static inline lane_mask_t contributes_lanes(const Entry e, lane_index_t ascan) {
     return index_mask((ascan >= e.window_first) & (ascan <= e.window_last));
 }
 
-/* beam_mantissa for each lane's d². */
-static inline lanes_t beam_mantissa_lanes(const ScannerParams p, lanes_t d2, real mantissa) {
-    return exp(-d2 * p.inv_w0_sq) * mantissa;
-}
-
-/* shadow_energy of each lane's beam mantissa. */
-static inline lanes_t shadow_energy_lanes(lanes_t beam, int exponent) {
-    return fmin(ldexp(beam * beam, 2 * exponent), (real)1);
-}
-
 /* The scale exponents of the block's A-scans (NO_AMPLITUDE past the last). */
 static inline lane_index_t scale_lanes(const LaneBlock b, __global const int *scale_exponent) {
     lane_index_t scale = NO_AMPLITUDE;
@@ -403,7 +391,7 @@ __kernel void render_forward(const ScannerParams p,
         const lanes_t d2 = squared_distance_lanes(p, b.ascan, e);
         const lane_mask_t reach = active & (d2 < p.shadow_d2);
         if (!any(reach)) continue;
-        const lanes_t beam = beam_mantissa_lanes(p, d2, e.mantissa);
+        const lanes_t beam = beam_mantissa(p, d2, e.mantissa);
         if (slot_data)
             for (int l = 0; l < b.lanes; ++l)
                 if (LANE_HOLDS(reach, l)) slot_data[(size_t)(b.lane0 + l) * p.entries + j].x = LANE(transmission, l);
@@ -421,7 +409,7 @@ __kernel void render_forward(const ScannerParams p,
             }
         }
         /* T ← dw_mul(T, one_minus(t)) lane-wise */
-        const lanes_t energy = shadow_energy_lanes(beam, e.exponent);
+        const lanes_t energy = shadow_energy(beam, e.exponent);
         const lanes_t factor = 1 - energy, factor_lo = (1 - factor) - energy;
         const lanes_t product = transmission * factor;
         const lanes_t error = fma(transmission, factor, -product)
@@ -507,8 +495,8 @@ __kernel void render_adjoint(const ScannerParams p,
             else if (LANE_HOLDS(visited, l)) *slot = (complex_t)(0, 0);
         }
         if (!any(reach)) continue;
-        const lanes_t beam = beam_mantissa_lanes(p, d2, e.mantissa);
-        const lanes_t energy = shadow_energy_lanes(beam, e.exponent);
+        const lanes_t beam = beam_mantissa(p, d2, e.mantissa);
+        const lanes_t energy = shadow_energy(beam, e.exponent);
         lanes_t grad_u = 0, grad_z = 0, grad_transmission = 0;
         const lane_mask_t contributing = reach & contributes_lanes(e, b.ascan);
         if (any(contributing)) {

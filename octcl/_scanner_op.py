@@ -43,6 +43,9 @@ VARIANTS = ("work-item", "work-group")
 #: allows fewer): two grid points and one butterfly pair of the 512-point FFT
 #: each, and 128·512 = 65,536 work-items for a B-scan.
 WORK_GROUP_SIZE = 128
+#: Bytes of the work-item kernels' vectors: LANES reals (8 floats, 4 doubles), the
+#: 256 bits of an AVX2 register (``kernels/scanner.cl``, "Vector maths").
+VECTOR_BYTES = 32
 #: The exponent given to a zero amplitude (NO_AMPLITUDE in ``kernels/scanner.cl``).
 NO_AMPLITUDE = -(1 << 20)
 
@@ -383,7 +386,7 @@ class ScannerKernels:
         if self.variant == "work-group":
             kernel(self.queue, (nx * self.work_group_size,), (self.work_group_size,), *arguments)
         else:
-            lanes = 4 if self.settings.double else 8
+            lanes = VECTOR_BYTES // np.dtype(self.real).itemsize
             work_items = (self.bins - 2) * -(-self.ascans_per_bin // lanes)
             scratch = self._buffer("grid_scratch", nx * scratch_points * np.dtype(self.complex).itemsize)
             kernel(self.queue, (work_items,), (1,), *arguments, scratch)
