@@ -98,6 +98,10 @@ class InvertResult:
     stop_reason : str
         What ended stage 3 (:attr:`octcl.host.refine.RefineResult.stop_reason`):
         ``schedule``, ``converged``, ``target score`` or ``deadline``.
+    falls : list of int
+        Stage-3 steps after which the main run fell and went back to the best
+        phantom at lower learning rates
+        (:attr:`octcl.host.refine.RefineSchedule.max_falls`).
     seed : int
     field_iterations : int
         Adam steps of stage 1.
@@ -130,6 +134,7 @@ class InvertResult:
     peak_memory_mib: float
     stopped_by_deadline: bool
     stop_reason: str
+    falls: list
     seed: int
     field_iterations: int
     fixed_schedule: bool
@@ -465,7 +470,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         components=result.components, initial_score=result.initial_components["mean"],
         scatterers=len(result.phantom), iterations=result.iterations, seconds=seconds,
         checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
-        stopped_by_deadline=result.stopped_by_deadline, stop_reason=result.stop_reason, seed=seed, field_iterations=fit.iterations,
+        stopped_by_deadline=result.stopped_by_deadline, stop_reason=result.stop_reason,
+        falls=result.falls, seed=seed, field_iterations=fit.iterations,
         fixed_schedule=fixed, threads=threads,
         reproduce=f"--seed {seed} --iterations {result.iterations} --field-iterations {fit.iterations} "
                   f"--threads {FIXED_THREADS if threads is None else threads}")

@@ -111,6 +111,8 @@ MAX_ENERGY_PCT = 100.0
 MIN_GAIN = 1e-5
 #: Stopping rules by name (:meth:`RefineSchedule.with_stop_rule`), the default first.
 STOP_RULES = ("restarts", "stall", "none")
+#: What a fall of the main run (:attr:`RefineSchedule.max_falls`) multiplies its learning rates by.
+FALL_LR_FACTOR = 0.5
 
 
 @dataclass(frozen=True)
@@ -202,6 +204,21 @@ class RefineSchedule:
         ended lower on every scan of the development set, early and late in
         the schedule, for 0.2–0.6 s less a step (``scripts/bench_refine.py``,
         docs/benchmarks.md).
+    max_falls : int
+        The main run goes back when it falls: a checkpoint scoring below
+        max(s₀, s_best − ``fall_tolerance``), s₀ the score the run started
+        from and s_best the best so far, puts the best phantom back as the
+        iterate, with fresh Adam moments and the learning rates of the rest
+        of the main run times :data:`FALL_LR_FACTOR`; at most ``max_falls``
+        times, then the run goes on from where it is (0: never). Restarts
+        already begin from the best phantom and keep it, so only the main
+        run is guarded. On a run that gains, nothing changes: its
+        checkpoints stay above s₀ and within the tolerance of its best.
+    fall_tolerance : float
+        How far below the best a checkpoint may score before the main run
+        has fallen. Along the main run the iterate's exact score moves by
+        ±1e−4 to ±4e−4 between checkpoints while its best keeps rising (module
+        docstring), so the default 1e−3 is 2.5 times the largest such move.
 
     These decisions follow the exact scores alone, never the clock, so
     fixed-schedule runs stay reproducible.
@@ -220,6 +237,8 @@ class RefineSchedule:
     patience: int | None = None
     min_gain: float | None = MIN_GAIN
     lpips_every: int = 1
+    max_falls: int = 2
+    fall_tolerance: float = 1e-3
 
     def __post_init__(self):
         if self.score_every < 1:
@@ -238,6 +257,10 @@ class RefineSchedule:
             raise ValueError("patience needs a min_gain")
         if not (isinstance(self.lpips_every, int) and self.lpips_every >= 1):
             raise ValueError(f"lpips_every must be a whole number ≥ 1, got {self.lpips_every!r}")
+        if not (isinstance(self.max_falls, int) and self.max_falls >= 0):
+            raise ValueError(f"max_falls must be a whole number ≥ 0, got {self.max_falls!r}")
+        if not self.fall_tolerance >= 0:
+            raise ValueError(f"fall_tolerance must be ≥ 0, got {self.fall_tolerance}")
 
     def fixed_length(self) -> "RefineSchedule":
         """This schedule without adaptive stopping: every phase and restart runs its whole length."""
@@ -371,6 +394,10 @@ class RefineResult:
         ``deadline``.
     torch_threads : int
         CPU threads the loss ran with at the end (:class:`_ThreadChooser`).
+    falls : list of int
+        The Adam steps (restarts included, as ``iterations`` counts them)
+        after which the main run fell and went back to the best phantom
+        (:attr:`RefineSchedule.max_falls`).
     """
 
     phantom: Phantom
@@ -383,6 +410,7 @@ class RefineResult:
     stopped_by_deadline: bool
     stop_reason: str
     torch_threads: int
+    falls: list
 
 
 def check_target_score(target_score) -> None:
@@ -677,6 +705,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         return Phantom(x_um, y_um, z.copy(), np.minimum(np.exp(u), MAX_ENERGY_PCT))
 
     best = last_score = None  # the best checkpoint; (score, time) of the last exact evaluation
+    falls = []  # stage-3 steps after which the main run fell and went back to the best phantom
 
     def report(stage):
         if progress:
@@ -698,15 +727,17 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                 on_improvement(as_phantom(z, u), components)
         reach_target()
 
-    def run(stage, phases, z, u, checkpoints):
+    def run(stage, phases, z, u, checkpoints, guarded=False):
         """Adam from (z, u) through ``phases``; score after the given step counts and at the end.
 
         Returns True, early and without scoring again, when the run has
         stalled (:attr:`RefineSchedule.patience`); returns early too when
-        ``stop_reason`` is set.
+        ``stop_reason`` is set. A ``guarded`` run goes back to the best
+        phantom when it falls (:attr:`RefineSchedule.max_falls`).
         """
         nonlocal stop_reason, iterations
         adam = _Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
+        run_start, lr_scale = best.score, 1.0
         # The steps of these phases that the schedule's iteration count still allows.
         plan = [phase for phase in phases for _ in range(phase.iterations)][:total - iterations]
         best_after = [best.score]  # the best score at the run's start and after each of its checkpoints
@@ -753,12 +784,23 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                 if stop_reason or stalled:
                     report(stage)
                     return stalled
+                if guarded and len(falls) < schedule.max_falls and \
+                        components["mean"] < max(run_start, best.score - schedule.fall_tolerance):
+                    # Fallen (RefineSchedule.max_falls): on from the best phantom, fresh moments, shorter steps.
+                    falls.append(iterations)
+                    z[:], u[:] = best.z_um, best.log_energy
+                    adam = _Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
+                    lr_scale *= FALL_LR_FACTOR
+                    if lpips_mode == "reuse":  # the kept LPIPS gradient is the fallen iterate's
+                        lpips_mode, lpips_kept_at = "keep", step
+                    rendering = refiner.render(z, u, for_adjoint=True)
             start = time.perf_counter()
             value, grad_u, grad_z = refiner.gradients(rendering, plan[step].lpips, lpips_mode)
             clock.record(loss_adjoint, time.perf_counter() - start)
             entry["loss"] = value.loss
             start = time.perf_counter()
-            refiner.step(adam, (z, u), (grad_z, grad_u), (plan[step].lr_z_um, plan[step].lr_u))
+            refiner.step(adam, (z, u), (grad_z, grad_u),
+                         (lr_scale * plan[step].lr_z_um, lr_scale * plan[step].lr_u))
             clock.record("adam", time.perf_counter() - start)
             iterations += 1
             report(stage)
@@ -776,7 +818,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         reach_target()
         if not stop_reason:
             stalled = run("refine", schedule.phases, z_um, log_energy,
-                          set(range(schedule.score_every, main_length, schedule.score_every)))
+                          set(range(schedule.score_every, main_length, schedule.score_every)), guarded=True)
             if stalled and not schedule.restarts:
                 stop_reason = "converged"
         # The restarts in order; with adaptive stopping the last is repeated
@@ -798,8 +840,8 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                         initial_components=initial, iterations=iterations, trace=trace,
                         timings_s=dict(refiner.timings), cpu_s=dict(refiner.cpu_seconds),
                         stopped_by_deadline=stop_reason == "deadline", stop_reason=stop_reason or "schedule",
-                        torch_threads=refiner.threads.threads)
+                        torch_threads=refiner.threads.threads, falls=falls)
 
 
-__all__ = ["Checkpoint", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule", "STOP_RULES",
-           "TimeBudgetExceeded", "check_target_score", "refine", "saved_precision"]
+__all__ = ["Checkpoint", "FALL_LR_FACTOR", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule",
+           "STOP_RULES", "TimeBudgetExceeded", "check_target_score", "refine", "saved_precision"]

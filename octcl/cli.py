@@ -177,6 +177,9 @@ def _invert_lines(result: dict) -> list[str]:
     ending = ("fixed schedule, " if result["fixed_schedule"] else "deadline mode, ") + {
         "schedule": "schedule completed", "converged": "stopped: converged",
         "target score": "stopped: target score reached", "deadline": "stopped by the time budget"}[result["stop_reason"]]
+    if result["falls"]:
+        ending += f"; fell after step{'s' if len(result['falls']) > 1 else ''} " + \
+            ", ".join(map(str, result["falls"])) + " and went back to the best phantom"
     threads = result["threads"] if result["threads"] is not None else "chosen by timing"
     return [f"{result['output']}: {result['scatterers']:,} scatterers, score {result['score']:.5f} "
             f"(initial_score after stages 1-2: {result['initial_score']:.5f})",

@@ -96,10 +96,12 @@ def development_set(out: Path, skin: int) -> dict[str, Path]:
 #: ``--schedules``: stage 3's schedule by name. ``fixed-length`` is the
 #: default's phases and restarts, each run to its whole length (the schedule
 #: before adaptive stopping); ``stall-rule`` adds to the default the main
-#: run's stall rule with a patience of 2 checkpoints (host/refine.py).
-#: Variants of the loss are compared by ``bench_refine.py``.
+#: run's stall rule with a patience of 2 checkpoints (host/refine.py);
+#: ``no-fall-guard`` is the default whose main run never goes back to its
+#: best phantom when it falls (``max_falls`` 0). Variants of the loss are
+#: compared by ``bench_refine.py``.
 SCHEDULES = {"default": "RefineSchedule()", "fixed-length": "RefineSchedule().fixed_length()",
-             "stall-rule": "RefineSchedule(patience=2)"}
+             "stall-rule": "RefineSchedule(patience=2)", "no-fall-guard": "RefineSchedule(max_falls=0)"}
 
 
 def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None,
@@ -197,11 +199,13 @@ def main(argv=None) -> int:
                              "mean": components["mean"], "initial_score": report["initial_score"],
                              "iterations": report["iterations"], "field_iterations": report["field_iterations"],
                              "stop_reason": report.get("stop_reason"),
+                             "falls": " ".join(map(str, report.get("falls", []))),
                              "seconds": report["seconds"]["total"], "wall_s": wall,
                              **{f"seconds_to_{label}": value for label, value in reached.items()},
                              "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
                 print(f"{run}: {components['mean']:.6f} (stages 1-2: {report['initial_score']:.6f}), "
                       f"{report['iterations']} iterations ({report.get('stop_reason')}), "
+                      f"falls after steps [{rows[run]['falls']}], "
                       f"{report['seconds']['total']:.0f} s, {report['peak_memory_mib']:.0f} MiB", flush=True)
 
     def global_of(schedule, seed):  # mean of the 8 per-component medians over the scans, for one seed
@@ -222,7 +226,7 @@ def main(argv=None) -> int:
     with atomic_write(args.out / "bench.json", "w") as handle:
         json.dump(summary, handle, indent=1)
     columns = ["scan", "schedule", "seed", *COMPONENTS, "mean", "initial_score", "iterations", "field_iterations",
-               "stop_reason", "seconds", "wall_s", *[key for key in next(iter(rows.values())) if
+               "stop_reason", "falls", "seconds", "wall_s", *[key for key in next(iter(rows.values())) if
                                                      key.startswith("seconds_to_")],
                "peak_memory_mib", "load_average"]
     write_csv(args.out / "bench.csv", columns, rows.values())

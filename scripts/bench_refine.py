@@ -17,16 +17,22 @@ Variants (:data:`VARIANTS`): ``default``; ``lpips-every-K``, the LPIPS
 terms' gradient computed on every K-th step and reused between
 (:attr:`octcl.host.refine.RefineSchedule.lpips_every`); ``no-lpips``, the
 loss without its LPIPS terms; ``oac-lpips-only``, the loss without the
-Struct, SC and RSC LPIPS terms (OAC's has 8× their weight).
+Struct, SC and RSC LPIPS terms (OAC's has 8× their weight);
+``no-fall-guard``, the main run never goes back to its best phantom when it
+falls (:attr:`octcl.host.refine.RefineSchedule.max_falls` 0);
+``long-steps`` and ``long-steps-no-fall-guard``, the main run's learning
+rates ``LONG_STEPS`` times the default's, with and without that guard (a
+scene the default's steps are too long for).
 
 Writes, in ``--out``: ``SCAN_stage2.txt`` (and ``SCAN_after_M.txt``), reused
 when present; ``refine.json`` (every variant's trace and timings);
 ``refine_comparison.md`` (per scan and variant: seconds per step and the
 loss's share of them, final
 best score and its difference to ``default``, the best score by the time
-the fastest variant ended, and the seconds to reach ``default``'s final
-best − 1e−4); ``refine_score_vs_time.png`` (per scan, each variant's
-iterate scores against seconds). ``--summarise`` writes the last two again
+the fastest variant ended, the seconds to reach ``default``'s final
+best − 1e−4, and the steps after which the main run fell);
+``refine_score_vs_time.png`` (per scan, each variant's iterate scores
+against seconds). ``--summarise`` writes the last two again
 from ``refine.json``.
 
 Example::
@@ -51,6 +57,8 @@ from octcl.host.refine import RefineSchedule, refine
 from octcl.host.target import read_target
 from octcl.phantom import Phantom
 
+#: The main run's learning rates in the ``long-steps`` variants, times the default's.
+LONG_STEPS = 4.0
 #: Variant name → the change it makes to a schedule.
 VARIANTS = {
     "default": lambda schedule: schedule,
@@ -61,7 +69,16 @@ VARIANTS = {
     "oac-lpips-only": lambda schedule: dataclasses.replace(
         schedule, loss_weights=dataclasses.replace(schedule.loss_weights, struct_lpips=0.0, sc_lpips=0.0,
                                                    rsc_lpips=0.0)),
+    "no-fall-guard": lambda schedule: dataclasses.replace(schedule, max_falls=0),
+    "long-steps": lambda schedule: longer_steps(schedule, LONG_STEPS),
+    "long-steps-no-fall-guard": lambda schedule: dataclasses.replace(longer_steps(schedule, LONG_STEPS), max_falls=0),
 }
+
+
+def longer_steps(schedule: RefineSchedule, factor: float) -> RefineSchedule:
+    """``schedule`` with its main run's learning rates times ``factor``: a scene its steps are too long for."""
+    return dataclasses.replace(schedule, phases=tuple(
+        dataclasses.replace(p, lr_z_um=factor * p.lr_z_um, lr_u=factor * p.lr_u) for p in schedule.phases))
 
 
 def after_steps(schedule: RefineSchedule, steps: int) -> RefineSchedule:
@@ -90,7 +107,7 @@ def best_by(trace: list[dict], seconds: float) -> float:
 def summary_lines(results: dict) -> list[str]:
     """The markdown table of ``refine_comparison.md``, one row per scan and variant."""
     lines = ["| scan | variant | s / step | loss s / step | final best | − default | best by the fastest's end | "
-             "s to default's best − 1e−4 |", "|---|---|---|---|---|---|---|---|"]
+             "s to default's best − 1e−4 | falls after step |", "|---|---|---|---|---|---|---|---|---|"]
     for scan, by_variant in results.items():
         default = by_variant["default"]["best"]
         fastest_end = min(run["trace"][-1]["time_s"] for run in by_variant.values())
@@ -100,7 +117,8 @@ def summary_lines(results: dict) -> list[str]:
             lines.append(f"| {scan} | {variant} | {run['trace'][-1]['time_s'] / steps:.2f} | "
                          f"{run['timings_s']['loss'] / steps:.2f} | {run['best']:.6f} | {run['best'] - default:+.1e} | "
                          f"{best_by(run['trace'], fastest_end):.6f} | "
-                         f"{'never' if reached is None else f'{reached:.0f}'} |")
+                         f"{'never' if reached is None else f'{reached:.0f}'} | "
+                         f"{', '.join(map(str, run.get('falls', []))) or '–'} |")
     return lines
 
 
@@ -163,10 +181,11 @@ def main(argv=None) -> int:
             result = refine(start, target, VARIANTS[variant](schedule).truncated(args.iterations), kernels=kernels,
                             exact_score=exact_score, threads=args.threads)
             results[name][variant] = {"best": result.components["mean"], "iterations": result.iterations,
+                                      "falls": result.falls,
                                       "initial": result.initial_components["mean"], "trace": result.trace,
                                       "timings_s": result.timings_s, "cpu_s": result.cpu_s}
             print(f"{name} {variant}: {result.initial_components['mean']:.6f} → {result.components['mean']:.6f} "
-                  f"in {result.trace[-1]['time_s']:.0f} s", flush=True)
+                  f"in {result.trace[-1]['time_s']:.0f} s, falls after steps {result.falls}", flush=True)
     settings = {key: (str(value) if isinstance(value, Path) else value) for key, value in vars(args).items()
                 if key not in ("out", "summarise")}
     with atomic_write(args.out / "refine.json", "w") as handle:

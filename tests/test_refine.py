@@ -1,5 +1,6 @@
 """Stage 3: the scorer-aligned loss, the Adam refinement, its constraints and deadline."""
 
+import dataclasses
 import math
 import time
 
@@ -294,6 +295,50 @@ def test_a_stalled_run_stops(stage2_phantom, layers_target):
     assert repeated.components["mean"] > repeated.initial_components["mean"]
 
 
+def test_a_fallen_main_run_goes_back_to_its_best(stage2_phantom, layers_target, monkeypatch):
+    """Steps far too long make the checkpoints fall below the start: back to the best, at half the rates.
+
+    With ``max_falls`` 2 the run falls after steps 2 and 4; each time the
+    next step starts from the best phantom (the input, since nothing
+    gains) with fresh moments, and the learning rates are halved. A third
+    fall is not acted on.
+    """
+    from octcl.host.refine import FALL_LR_FACTOR, _Refiner
+
+    steps = []
+    original = _Refiner.step
+
+    def spy(self, adam, params, grads, lrs):
+        steps.append((params[0].copy(), params[1].copy(), lrs, adam.steps))
+        return original(self, adam, params, grads, lrs)
+
+    monkeypatch.setattr(_Refiner, "step", spy)
+    wild = Phase(8, 2.0, 2.0, lpips=False)
+    schedule = RefineSchedule(phases=(wild,), restarts=(), score_every=2, max_falls=2)
+    result = refine(stage2_phantom, layers_target, schedule, threads=1)
+    assert result.falls == [2, 4] and result.iterations == 8
+    scored = [entry["score"] for entry in result.trace if entry["score"] is not None]
+    assert all(score < scored[0] for score in scored[1:])  # every checkpoint fell
+    assert result.components == result.initial_components
+    lrs = [lr for _, _, lr, _ in steps]
+    assert lrs == [(2.0, 2.0)] * 2 + [(2.0 * FALL_LR_FACTOR,) * 2] * 2 + [(2.0 * FALL_LR_FACTOR**2,) * 2] * 4
+    for after_fall in (2, 4):  # the input phantom again, and Adam from zero moments
+        np.testing.assert_array_equal(steps[after_fall][0], steps[0][0])
+        np.testing.assert_array_equal(steps[after_fall][1], steps[0][1])
+        assert steps[after_fall][3] == 0
+    assert not np.array_equal(steps[6][0], steps[0][0])  # the third fall (after step 6) is let be
+
+    # A run that gains never falls, and the guard changes none of its bits.
+    steps.clear()
+    gaining = RefineSchedule(phases=(Phase(6, 0.002, 0.02, lpips=False),), restarts=(), score_every=2)
+    guarded = refine(stage2_phantom, layers_target, gaining, threads=1)
+    unguarded = refine(stage2_phantom, layers_target, dataclasses.replace(gaining, max_falls=0), threads=1)
+    assert guarded.falls == unguarded.falls == []
+    assert guarded.components["mean"] > guarded.initial_components["mean"]
+    np.testing.assert_array_equal(guarded.phantom.z_um, unguarded.phantom.z_um)
+    np.testing.assert_array_equal(guarded.phantom.energy_pct, unguarded.phantom.energy_pct)
+
+
 def test_target_score_stops_the_refinement(stage2_phantom, layers_target):
     schedule = RefineSchedule(phases=(Phase(30, 0.01, 0.02, lpips=False),), restarts=(), score_every=2)
     reached = refine(stage2_phantom, layers_target, schedule, threads=1, target_score=0.01)
@@ -323,6 +368,11 @@ def test_schedule_checks():
     for bad in (0, 2.0):
         with pytest.raises(ValueError, match="lpips_every"):
             RefineSchedule(lpips_every=bad)
+    for bad in (-1, 1.0):
+        with pytest.raises(ValueError, match="max_falls"):
+            RefineSchedule(max_falls=bad)
+    with pytest.raises(ValueError, match="fall_tolerance"):
+        RefineSchedule(fall_tolerance=float("nan"))
     rules = {rule: RefineSchedule().with_stop_rule(rule) for rule in ("restarts", "stall", "none")}
     assert rules["restarts"] == RefineSchedule() and rules["none"] == RefineSchedule().fixed_length()
     assert (rules["stall"].patience, rules["stall"].min_gain) == (2, RefineSchedule().min_gain)
