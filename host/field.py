@@ -62,6 +62,11 @@ HIGH_PASS_WEIGHT = 0.5
 #: was 0.99855 at weight 0 and 0.99952–0.99969 from 0.03 to 1: a little
 #: energy penalty steadies the fit of a real scan, much of it costs detail.
 ENERGY_WEIGHT = 0.1
+#: Share of the time budget that the learning rate's clock term ignores
+#: (:func:`fit_field`): the first steps, FFT plans and the initialisation
+#: would otherwise put the clock ahead of the step count on every fit, and
+#: the learning rate, in its last bits, would follow the clock.
+CLOCK_MARGIN = 0.1
 #: Tikhonov parameter of the initial inverse, relative to max |w·ĝ|².
 #: MS-SSIM of the fitted display at the start / after 400 steps, Uniform_A and
 #: orange: 1e−2: 0.9879 / 0.9996, 0.9919 / 0.9990; 1e−3: 0.9885 / 0.9997,
@@ -268,6 +273,10 @@ class FieldFit:
         Wall time of the fit, initialisation included.
     threads : int
         torch CPU threads used.
+    clock_steps : int
+        Steps whose learning rate the clock set (the fit had fallen behind
+        its time budget, :func:`fit_field`); 0: the fit took no decision
+        from the clock.
     """
 
     field: np.ndarray
@@ -277,17 +286,59 @@ class FieldFit:
     iterations: int
     seconds: float
     threads: int
+    clock_steps: int = 0
 
 
 def _high_pass(image: torch.Tensor) -> torch.Tensor:
     """X − box3(X): the image minus its 3×3 mean (edges replicated).
 
     The box sum is taken as shifted slices, a third of the time of
-    ``avg_pool2d`` with its backward pass on a 256×512 image.
+    ``avg_pool2d`` with its backward pass on a 256×512 image. The edges are
+    replicated by concatenation: the backward pass of ``pad(mode="replicate")``
+    adds up its edge gradients in an order that changes with torch's thread
+    count (see :func:`_mean`).
     """
-    padded = torch.nn.functional.pad(image[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    padded = torch.cat([image[:1], image, image[-1:]])
+    padded = torch.cat([padded[:, :1], padded, padded[:, -1:]], dim=1)
     rows = padded[:-2] + padded[1:-1] + padded[2:]
     return image - (rows[:, :-2] + rows[:, 1:-1] + rows[:, 2:]) / 9.0
+
+
+def _mean(image: torch.Tensor) -> torch.Tensor:
+    """The mean of a 2-D tensor with the same bits at every thread count.
+
+    torch splits a whole-tensor sum between its threads, so its rounding,
+    and with it the path of the non-convex fit, changes with the thread
+    count. A sum along the rows is split by row (each row summed by one
+    thread), and the Nz row sums are too few to split, so this sum's order
+    never changes: the fit is the same, bit for bit, at any thread count
+    (``tests/test_field.py``); FFTs, element-wise operations and the
+    maxima are so already.
+    """
+    return image.sum(dim=1).sum() / image.numel()
+
+
+class _MinusMax(torch.autograd.Function):
+    """X − max X for a 2-D tensor, with a backward pass of the same bits at every thread count.
+
+    ∂/∂X_k of Σ G·(X − max X) is G_k − [k = argmax]·Σ G: autograd's own
+    backward of the broadcast subtraction takes Σ G as a whole-tensor sum,
+    split between threads; here it is :func:`_mean`'s row-wise sum. Of tied
+    maxima the first carries the gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, image):
+        brightest = image.argmax()
+        ctx.save_for_backward(brightest)
+        return image - image.reshape(-1)[brightest]
+
+    @staticmethod
+    def backward(ctx, grad):
+        (brightest,) = ctx.saved_tensors
+        result = grad.clone()
+        result.reshape(-1)[brightest] -= grad.sum(dim=1).sum()
+        return result
 
 
 def _available_cores() -> int:
@@ -372,12 +423,16 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
 
     so the random-phase starts are not offered.
 
-    The learning rate follows lr₀·½(1 + cos(π·τ)) with τ the larger of the
-    fractions of ``iterations`` and ``time_budget_s`` used, so the schedule
-    completes whichever ends first; without a time budget τ is the fraction
-    of ``iterations`` alone, and the fit depends on no clock: with the same
-    target, iterations and thread count it is the same, bit for bit
-    (``scripts/check_determinism.py``).
+    The learning rate follows lr₀·½(1 + cos(π·τ)) with
+    τ = max(i/N, (t/T − m)/(1 − m)): i of N ``iterations`` taken, t of
+    T = ``time_budget_s`` seconds used, m = :data:`CLOCK_MARGIN`. The
+    schedule completes whichever ends first, and the clock takes over only
+    where the fit falls behind the time it was given: a fit whose steps keep
+    ahead of the clock's term (all of them on two idle cores: 1500 steps in
+    11–12 s of a 45 s share) takes no decision from the clock. Then, or
+    without a time budget, the fit depends on nothing but the target and
+    the iterations: it is the same, bit for bit, at any thread count
+    (:func:`_mean`, :class:`_MinusMax`, ``scripts/check_determinism.py``).
 
     Parameters
     ----------
@@ -433,25 +488,28 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     goal_high_pass = _high_pass(goal)
     visible = goal > 0
     optimiser = torch.optim.Adam([log_magnitude, phase], lr=LEARNING_RATE)
-    losses = []
+    losses, clock_steps = [], []
 
     def time_fraction() -> float:
         return 0.0 if time_budget_s is None else (time.perf_counter() - start) / time_budget_s
 
     def step():
-        fraction = min(1.0, max(len(losses) / iterations, time_fraction()))
+        clock = (time_fraction() - CLOCK_MARGIN) / (1.0 - CLOCK_MARGIN)
+        if clock > len(losses) / iterations:
+            clock_steps.append(len(losses))
+        fraction = min(1.0, max(len(losses) / iterations, clock))
         for group in optimiser.param_groups:
             group["lr"] = LEARNING_RATE * 0.5 * (1.0 + math.cos(math.pi * fraction))
         field = torch.polar(torch.exp(log_magnitude), phase)
         a_scans = operator.apply_torch(field)
         power = a_scans.real**2 + a_scans.imag**2
         log_amplitude = 0.5 * torch.log(power + 1e-24 * power.detach().max())
-        display = 1.0 + DISPLAY_SLOPE * (log_amplitude - log_amplitude.max())
+        display = 1.0 + DISPLAY_SLOPE * _MinusMax.apply(log_amplitude)
         display = torch.where(visible, display.clamp(min=DISPLAY_GRADIENT_FLOOR), display.clamp(min=0.0))
         error = display - goal
-        image = error.abs().mean() + (error**2).mean()
-        high_pass = (_high_pass(display) - goal_high_pass).abs().mean()
-        energy = (field.real**2 + field.imag**2).mean() / power.max()
+        image = _mean(error.abs()) + _mean(error**2)
+        high_pass = _mean((_high_pass(display) - goal_high_pass).abs())
+        energy = _mean(field.real**2 + field.imag**2) / power.max()
         loss = image + HIGH_PASS_WEIGHT * high_pass + energy_weight * energy
         optimiser.zero_grad()
         loss.backward()
@@ -487,4 +545,4 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     display = Rendering.from_a_scans(a_scans).display
     return FieldFit(field=field, display=display, target_display=goal_display,
                     losses=np.array(losses), iterations=len(losses),
-                    seconds=time.perf_counter() - start, threads=threads)
+                    seconds=time.perf_counter() - start, threads=threads, clock_steps=len(clock_steps))

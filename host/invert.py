@@ -16,11 +16,13 @@ any moment leaves the last checkpoint, or no file before the first.
 
 Two modes. In deadline mode (the default) the stages share out the time
 budget, so how far each gets depends on the machine's speed and load; the
-result records the iteration counts reached. A fixed schedule (``iterations``)
-runs by iteration counts alone at a fixed torch thread count, takes no
-decision from the clock, and writes the same file, byte for byte, every time
-(``docs/reproducibility.md``); there the budget is only a ceiling that fails
-the run loudly.
+result records the iteration counts reached, and whether the clock decided
+anything (:attr:`InvertResult.reproducible`): a run it did not is repeated
+byte for byte by the same call and by its fixed schedule. A fixed schedule
+(``iterations``) runs by iteration counts alone, takes no decision from the
+clock, and writes the same file, byte for byte, every time, at any torch
+thread count (``docs/reproducibility.md``); there the budget is only a
+ceiling that fails the run loudly.
 """
 
 from __future__ import annotations
@@ -56,10 +58,10 @@ FIELD_BUDGET_FRACTION = 0.08
 FIELD_BUDGET_CAP_S = 45.0
 #: Stage 1's Adam steps (its learning rate anneals over them).
 FIELD_ITERATIONS = 1500
-#: torch's thread count in a fixed-schedule run unless given. One thread
-#: gives the same bits on machines with any number of cores (results differ
-#: between thread counts: docs/reproducibility.md), and on a loaded 2-core
-#: machine it is also the faster (see host/refine.py, _ThreadChooser).
+#: torch's thread count in a fixed-schedule run unless given. The thread
+#: count changes no bit of the result (docs/reproducibility.md), only the
+#: speed; one thread is never slowed by other processes holding the cores
+#: (see host/refine.py, _ThreadChooser).
 FIXED_THREADS = 1
 #: Seconds kept back from stage 3 for the last checkpoint writes and the
 #: report: a write may be under way when stage 3 ends and the best phantom
@@ -114,12 +116,15 @@ class InvertResult:
     reproduce : str
         ``octcl invert`` options that run this schedule again with no
         decision from the clock: ``--seed``, ``--iterations``,
-        ``--field-iterations``, ``--threads``. For a fixed-schedule run they
-        give the same file again (same version and device, see
-        ``docs/reproducibility.md``); a deadline run's timed thread choices
-        and, where its time share cut stage 1 short, its clock-driven
-        learning-rate decay are not replayed: they give the fixed-schedule
-        run of the same lengths, at one thread unless ``threads`` was given.
+        ``--field-iterations``, ``--threads``.
+    reproducible : bool
+        No decision of this run came from the clock, so ``reproduce`` gives
+        the same file again, byte for byte (same version and device, see
+        ``docs/reproducibility.md``): always for a fixed schedule; for a
+        deadline run, unless stage 1 fell behind its time share (its
+        learning rate then followed the clock) or the deadline ended stage 3.
+        The thread count, timed or given, changes no bit (measured at 1 and
+        2 threads).
     """
 
     target: str
@@ -140,6 +145,7 @@ class InvertResult:
     fixed_schedule: bool
     threads: int | None
     reproduce: str
+    reproducible: bool
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -474,13 +480,15 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         falls=result.falls, seed=seed, field_iterations=fit.iterations,
         fixed_schedule=fixed, threads=threads,
         reproduce=f"--seed {seed} --iterations {result.iterations} --field-iterations {fit.iterations} "
-                  f"--threads {FIXED_THREADS if threads is None else threads}")
+                  f"--threads {FIXED_THREADS if threads is None else threads}",
+        reproducible=fixed or (fit.clock_steps == 0 and not result.stopped_by_deadline))
     if report_path is not None:
         contents = {
             **outcome.as_dict(),
             "initial_components": result.initial_components,
             "settings": {"time_budget_s": time_budget_s, "field_budget_s": field_budget,
                          "field_iterations_planned": field_iterations, "field_threads": fit.threads,
+                         "field_clock_steps": fit.clock_steps,
                          "refine_threads": result.torch_threads,
                          "schedule": dataclasses.asdict(schedule), "config": dataclasses.asdict(config),
                          "checkpoint_interval_s": CHECKPOINT_INTERVAL_S, "target_score": target_score},

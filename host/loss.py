@@ -185,9 +185,7 @@ class DisplayLoss:
 
     def _lpips(self, name: str, image: torch.Tensor) -> torch.Tensor:
         """LPIPS(target map, image) = Σ_l mean_hw w_l·(f̂_l(T) − f̂_l(P))², target features cached."""
-        return sum(head((tap_target - tap) ** 2).mean()
-                   for head, tap_target, tap in zip(self.network.heads, self._target_taps[name],
-                                                    self._taps(image)))
+        return self.network.distance(self._target_taps[name], self._taps(image))[0]
 
     def _wanted(self, lpips: bool) -> set[str]:
         """The terms with a positive weight (without the LPIPS ones unless ``lpips``)."""

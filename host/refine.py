@@ -66,6 +66,29 @@ shorter than the iterations the main run left), the last restart is
 repeated while each gains, so a scene that still gains keeps its
 iterations.
 
+Falls (:attr:`RefineSchedule.max_falls`). One default run of Uniform A in
+eight fell 2.1e−3 below the others: its first 20 steps took the exact score
+from 0.99605 down to 0.99592 (the RSC map broke), and the main run went on
+from there. A main run that scores below its start, or 1e−3 below its best,
+now goes back to its best phantom at half the learning rates. From the
+same stage-2 phantoms (``python scripts/bench_refine.py --scans
+Scan_Exp1_Uniform_A Scan_Exp1_Uniform_B Scan_Exp2_Layers_A orange skin_0
+--variants default no-fall-guard long-steps long-steps-no-fall-guard
+--iterations 100 --score-every 20``, docs/benchmarks.md):
+
+- the default fell only on skin_0 (step 20: −8e−5 under its start, a dip
+  that the next checkpoint recovers either way) and ended within 8e−7 of
+  the unguarded run; on the other four scans it never fell, bit for bit
+  the same run;
+- with every main-run step 4× longer (a scene the default's steps are too
+  long for), the unguarded runs ended 2.9e−4 to 3.0e−3 below the default;
+  the guarded ones fell after step 20, 40 or 80 and ended 2.1e−4 to
+  5.4e−4 above the unguarded (within 2.6e−4 of the default, but orange).
+
+At checkpoints every 10 steps the first checkpoint falls in the default
+too (Uniform A and Layers A dip below their start at step 10 and are far
+above it at 20), so the guard is meant for the default's spacing of 20.
+
 The loss only stands in for the score, so progress is judged by the exact
 score (:class:`octcl.host.loss.ExactScore`, the mean of the eight official
 components of the rendered 8-bit scan). It is evaluated at checkpoints, and
@@ -75,9 +98,9 @@ best of the parent and their own checkpoints, as in the published schedule.
 
 Everything stops at a deadline (``time.monotonic()``), checked before every
 iteration and every exact evaluation against their measured durations. Without
-one (a fixed schedule, :meth:`RefineSchedule.truncated`) no decision depends on
-the clock: with a fixed thread count the result depends only on the inputs,
-the schedule and the device (``docs/reproducibility.md``).
+one (a fixed schedule, :meth:`RefineSchedule.truncated`), or before it, no
+decision depends on the clock: the result depends only on the inputs, the
+schedule and the device, at any thread count (``docs/reproducibility.md``).
 
 Cost on two CPU cores (PoCL), 280k scatterers, idle machine: 0.76 s an
 iteration — set_phantom 0.12 s, forward 0.09 s, loss 0.40 s (two threads),
@@ -655,8 +678,8 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         without a deadline.
     threads : int, optional
         torch's thread count for the whole refinement (loss and exact
-        scores). By default it is chosen by timing (:class:`_ThreadChooser`),
-        which makes the result depend on the machine's load.
+        scores). By default it is chosen by timing (:class:`_ThreadChooser`);
+        either way it changes the speed, not the result.
     target_score : float, optional
         Stop as soon as an exact evaluation reaches this score (in (0, 1]).
 
@@ -668,9 +691,9 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     -----
     Without ``threads`` the loss (torch) runs with one thread or with all
     cores, whichever is faster at the time (:class:`_ThreadChooser`); the
-    caller's setting is restored on return. With ``threads`` and no
-    ``deadline``, the result depends only on the inputs, the schedule, the
-    thread count and the device (``docs/reproducibility.md``).
+    caller's setting is restored on return. Unless the ``deadline`` ends
+    it, the result depends only on the inputs, the schedule and the device
+    (``docs/reproducibility.md``).
 
     Raises
     ------

@@ -331,13 +331,21 @@ def _build_network(arrays: dict[str, np.ndarray]):
             elif ref.dim() != 4 or ref.shape[1] != 1:
                 raise ValueError(f"expected (H, W) or (N, 1, H, W) images, got {tuple(ref.shape)}")
             dtype = self.shift.dtype
-            taps_ref = self._normalised_taps(ref.to(dtype))
-            taps_pred = self._normalised_taps(pred.to(dtype))
-            distance = sum(
-                head((tap_ref - tap_pred) ** 2).mean(dim=(1, 2, 3))
-                for head, tap_ref, tap_pred in zip(self.heads, taps_ref, taps_pred)
-            )
+            distance = self.distance(self._normalised_taps(ref.to(dtype)), self._normalised_taps(pred.to(dtype)))
             return distance[0] if single else distance
+
+        def distance(self, taps_ref, taps_pred):
+            """Σ_l mean_hw Σ_c w_lc·(f̂_lc(ref) − f̂_lc(pred))² of two images' taps, per image: shape (N,).
+
+            The channel sum with the linear heads' weights w_l is taken along
+            dim 1 rather than as LPIPS's 1×1 convolution: the same value to
+            float32 rounding, and the same bits at every torch thread count,
+            where oneDNN splits a one-channel convolution's sum over the
+            channels between threads (the last bit of a score then depended
+            on the thread count).
+            """
+            return sum((head.weight * (tap_ref - tap_pred) ** 2).sum(dim=1).mean(dim=(1, 2))
+                       for head, tap_ref, tap_pred in zip(self.heads, taps_ref, taps_pred))
 
     network = LpipsAlex().eval()
     network.requires_grad_(False)

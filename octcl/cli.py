@@ -186,7 +186,8 @@ def _invert_lines(result: dict) -> list[str]:
             *_format_table(result["components"]),
             f"iterations: {result['iterations']} ({ending}); field_iterations {result['field_iterations']}; "
             f"seed {result['seed']}; threads {threads}",
-            f"reproduce (this schedule, no clock decisions): {result['reproduce']}",
+            ("reproduce (the same file again): " if result["reproducible"] else
+             "reproduce (this schedule, without the clock's decisions): ") + result["reproduce"],
             f"seconds: {format_seconds(seconds['total'])} ({stages}); "
             f"checkpoints {result['checkpoints']}, peak memory {result['peak_memory_mib']:.0f} MiB"]
 

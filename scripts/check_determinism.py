@@ -15,8 +15,9 @@ OpenCL forward and adjoint twice on one phantom; the loss's gradient and the
 exact score of one rendering. For each it prints whether the bits repeat and,
 where they do not, the largest difference.
 
-Exit status 1 if two runs with the same settings gave different files (or a
-stage gave different bits for the same inputs), else 0. See
+Exit status 1 if two runs with the same settings but for the thread count
+gave different files (or a stage gave different bits for the same inputs at
+any thread count), else 0: no bit depends on torch's thread count. See
 ``docs/reproducibility.md`` for what the differences mean.
 
 Example::
@@ -99,7 +100,7 @@ def check_stages(target_path: Path, seed: int, field_iterations: int, thread_cou
     again = fit_field(scan, iterations=field_iterations, time_budget_s=None, threads=first).field
     ok &= compare(f"{first} thread(s), twice", fields[first], again, True)
     for threads in thread_counts[1:]:
-        ok &= compare(f"{first} against {threads} threads", fields[first], fields[threads], False)
+        ok &= compare(f"{first} against {threads} threads", fields[first], fields[threads], True)
 
     print(f"stage 2: decode_field of the {first}-thread field")
     phantoms = [decode_field(fields[first], max_scatterers=TARGET_ROWS, seed=s) for s in (seed, seed, seed + 1)]
@@ -139,8 +140,9 @@ def check_stages(target_path: Path, seed: int, field_iterations: int, thread_cou
     finally:
         torch.set_num_threads(previous)
     for threads in thread_counts[1:]:
-        compare(f"loss gradient, {first} against {threads} threads", gradients[first], gradients[threads], False)
-        compare(f"exact score, {first} against {threads} threads", scores[first], scores[threads], False)
+        ok &= compare(f"loss gradient, {first} against {threads} threads", gradients[first], gradients[threads],
+                      True)
+        ok &= compare(f"exact score, {first} against {threads} threads", scores[first], scores[threads], True)
     return ok
 
 
@@ -175,14 +177,14 @@ def main(argv=None) -> int:
         for index, ((threads, seed), result) in enumerate(zip(runs, results)):
             if index == 0:
                 continue
-            same_settings = (threads, seed) == runs[0]
+            same_settings = seed == runs[0][1]  # the thread count changes no bit
             verdict = "identical file" if result["sha256"] == first["sha256"] else \
                 f"differs: {rows_differing(files[0], files[index])}, score Δ {result['score'] - first['score']:+.1e}"
             print(f"  T {threads} seed {seed} against T {runs[0][0]} seed {runs[0][1]}: {verdict}")
             ok &= result["sha256"] == first["sha256"] or not same_settings
             repeat_of = next(i for i, run in enumerate(runs) if run == (threads, seed))
             ok &= result["sha256"] == results[repeat_of]["sha256"]
-    print("repeatable" if ok else "NOT repeatable: the same settings gave different bits")
+    print("repeatable" if ok else "NOT repeatable: the same settings (thread counts aside) gave different bits")
     return 0 if ok else 1
 
 

@@ -27,7 +27,7 @@ JSON_KEYS = {
     "score --refs": {"refs", "preds", "scans", "medians", "score", "csv", "seconds"},
     "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
                "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "stop_reason", "falls", "seed", "field_iterations",
-               "fixed_schedule", "threads", "reproduce", "report"},
+               "fixed_schedule", "threads", "reproduce", "reproducible", "report"},
     "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "octcl_version", "time_budget_s",
                          "seed", "options", "cluster", "wall_s"},
     "weights": {"weights", "ok"},
@@ -262,8 +262,8 @@ def test_invert_summary_says_where_the_main_run_fell():
     components = {key: 0.99 for key in COMPONENT_KEYS}
     result = {"output": "p.txt", "scatterers": 10, "score": 0.99, "initial_score": 0.98, "components": components,
               "iterations": 60, "fixed_schedule": True, "stop_reason": "schedule", "falls": [], "field_iterations": 5,
-              "seed": 0, "threads": 1, "reproduce": "--seed 0", "checkpoints": 2, "peak_memory_mib": 100.0,
-              "seconds": {"total": 9.0}}
+              "seed": 0, "threads": 1, "reproduce": "--seed 0", "reproducible": True, "checkpoints": 2,
+              "peak_memory_mib": 100.0, "seconds": {"total": 9.0}}
     assert "iterations: 60 (fixed schedule, schedule completed); field_iterations 5" in "\n".join(_invert_lines(result))
     result["falls"] = [20, 40]
     assert "(fixed schedule, schedule completed; fell after steps 20, 40 and went back to the best phantom)" in \

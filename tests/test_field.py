@@ -165,3 +165,32 @@ def test_fit_field_without_a_budget_takes_no_decision_from_the_clock(uniform_lev
     np.testing.assert_array_equal(fits[0].losses, fits[1].losses)
     # With a budget the same clock ends the fit before its first step.
     assert fit_field(uniform_levels, iterations=8, time_budget_s=60.0, threads=1).iterations == 0
+
+
+def test_fit_field_is_the_same_at_every_thread_count(uniform_levels):
+    """Its sums are split by row, never by thread: 1 and 2 threads give the same bits."""
+    fits = [fit_field(uniform_levels, iterations=30, time_budget_s=None, threads=threads) for threads in (1, 2)]
+    np.testing.assert_array_equal(fits[0].field, fits[1].field)
+    np.testing.assert_array_equal(fits[0].losses, fits[1].losses)
+
+
+def test_fit_field_ahead_of_its_clock_takes_no_decision_from_it(uniform_levels):
+    """A budget the steps keep ahead of gives the fit without a budget, bit for bit."""
+    unlimited = fit_field(uniform_levels, iterations=30, time_budget_s=None, threads=1)
+    ahead = fit_field(uniform_levels, iterations=30, time_budget_s=20.0, threads=1)
+    assert ahead.iterations == 30
+    np.testing.assert_array_equal(ahead.field, unlimited.field)
+
+
+def test_minus_max_is_x_minus_its_maximum():
+    import torch
+
+    from octcl.host.field import _MinusMax
+
+    image = torch.randn(6, 9, dtype=torch.float64, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    np.testing.assert_array_equal(_MinusMax.apply(image).detach(), (image - image.max()).detach())
+    assert torch.autograd.gradcheck(_MinusMax.apply, (image,))
+    weights = torch.randn(6, 9, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    ours, = torch.autograd.grad((weights * _MinusMax.apply(image)).sum(), image)
+    autograds, = torch.autograd.grad((weights * (image - image.max())).sum(), image)
+    np.testing.assert_allclose(ours, autograds, rtol=0, atol=1e-12)

@@ -66,7 +66,7 @@ def test_budget_is_respected_and_report_written(layers_path, tmp_path):
     elapsed = time.monotonic() - start
     assert elapsed < budget + 5.0
     _assert_contract(output)
-    assert result.stopped_by_deadline and result.iterations > 0
+    assert result.stopped_by_deadline and result.iterations > 0 and not result.reproducible
     assert result.score >= result.initial_score
     assert result.checkpoints >= 1
 
@@ -83,6 +83,8 @@ def test_budget_is_respected_and_report_written(layers_path, tmp_path):
 
     report = json.loads(report_path.read_text())
     assert report["seed"] == 3 and report["settings"]["time_budget_s"] == budget
+    # Stage 1's share, 2.4 s, is too short for its 1500 steps: the clock cut it and set its learning rate.
+    assert result.field_iterations < 1500 and report["settings"]["field_clock_steps"] > 0
     assert set(COMPONENTS) <= set(report["components"])
     assert report["peak_memory_mib"] > 0
     stages = [entry["stage"] for entry in report["trace"]]
@@ -126,3 +128,18 @@ def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):
     assert process.returncode == -signal.SIGKILL
     _assert_contract(output)
     assert output.stat().st_mtime_ns >= first_seen
+
+
+def test_a_deadline_run_that_took_no_decision_from_the_clock_repeats(tmp_path, layers_path):
+    """Deadline mode, threads timed or given: the same file, and ``reproduce``'s fixed schedule writes it too."""
+    schedule = RefineSchedule(phases=(Phase(6, 0.002, 0.02),), restarts=(), score_every=3)
+    timed = invert(layers_path, tmp_path / "timed.txt", time_budget_s=3000, field_iterations=200, schedule=schedule)
+    assert timed.reproducible and timed.threads is None and timed.stop_reason == "schedule"
+    two = invert(layers_path, tmp_path / "two.txt", time_budget_s=3000, field_iterations=200, schedule=schedule,
+                 threads=2)
+    assert two.reproducible and two.reproduce == timed.reproduce.replace("--threads 1", "--threads 2")
+    fixed = invert(layers_path, tmp_path / "fixed.txt", time_budget_s=3000, iterations=timed.iterations,
+                   field_iterations=timed.field_iterations, threads=1, schedule=schedule)
+    assert fixed.reproducible
+    contents = (tmp_path / "timed.txt").read_bytes()
+    assert (tmp_path / "two.txt").read_bytes() == contents and (tmp_path / "fixed.txt").read_bytes() == contents

@@ -64,6 +64,20 @@ def test_module_call_equals_distance(lpips_weights, official_uniform_maps):
     np.testing.assert_allclose(batch.detach().numpy(), distances, rtol=0, atol=1e-6)
 
 
+def test_distance_is_the_same_at_every_thread_count(lpips_weights, official_uniform_maps):
+    """No sum is split between threads: 1 and 2 torch threads give the same bits (the score's last bit)."""
+    ref_maps, pred_maps = official_uniform_maps
+    previous = torch.get_num_threads()
+    try:
+        distances = {}
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            distances[threads] = [lpips_distance(ref_maps[name], pred_maps[name]) for name in MAP_NAMES]
+    finally:
+        torch.set_num_threads(previous)
+    assert distances[1] == distances[2]
+
+
 def test_network_is_frozen_and_in_eval_mode(lpips_weights):
     network = lpips_network()
     assert network is lpips_network()
