@@ -200,6 +200,7 @@ def main(argv=None) -> int:
                              "iterations": report["iterations"], "field_iterations": report["field_iterations"],
                              "stop_reason": report.get("stop_reason"),
                              "falls": " ".join(map(str, report.get("falls", []))),
+                             "reproducible": report.get("reproducible"),
                              "seconds": report["seconds"]["total"], "wall_s": wall,
                              **{f"seconds_to_{label}": value for label, value in reached.items()},
                              "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
@@ -226,7 +227,7 @@ def main(argv=None) -> int:
     with atomic_write(args.out / "bench.json", "w") as handle:
         json.dump(summary, handle, indent=1)
     columns = ["scan", "schedule", "seed", *COMPONENTS, "mean", "initial_score", "iterations", "field_iterations",
-               "stop_reason", "falls", "seconds", "wall_s", *[key for key in next(iter(rows.values())) if
+               "stop_reason", "falls", "reproducible", "seconds", "wall_s", *[key for key in next(iter(rows.values())) if
                                                      key.startswith("seconds_to_")],
                "peak_memory_mib", "load_average"]
     write_csv(args.out / "bench.csv", columns, rows.values())
