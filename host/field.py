@@ -488,15 +488,15 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     goal_high_pass = _high_pass(goal)
     visible = goal > 0
     optimiser = torch.optim.Adam([log_magnitude, phase], lr=LEARNING_RATE)
-    losses, clock_steps = [], []
+    losses, clock_steps = [], 0
 
     def time_fraction() -> float:
         return 0.0 if time_budget_s is None else (time.perf_counter() - start) / time_budget_s
 
     def step():
+        nonlocal clock_steps
         clock = (time_fraction() - CLOCK_MARGIN) / (1.0 - CLOCK_MARGIN)
-        if clock > len(losses) / iterations:
-            clock_steps.append(len(losses))
+        clock_steps += clock > len(losses) / iterations
         fraction = min(1.0, max(len(losses) / iterations, clock))
         for group in optimiser.param_groups:
             group["lr"] = LEARNING_RATE * 0.5 * (1.0 + math.cos(math.pi * fraction))
@@ -545,4 +545,4 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     display = Rendering.from_a_scans(a_scans).display
     return FieldFit(field=field, display=display, target_display=goal_display,
                     losses=np.array(losses), iterations=len(losses),
-                    seconds=time.perf_counter() - start, threads=threads, clock_steps=len(clock_steps))
+                    seconds=time.perf_counter() - start, threads=threads, clock_steps=clock_steps)
