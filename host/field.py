@@ -286,7 +286,7 @@ class FieldFit:
     iterations: int
     seconds: float
     threads: int
-    clock_steps: int = 0
+    clock_steps: int
 
 
 def _high_pass(image: torch.Tensor) -> torch.Tensor:
@@ -296,7 +296,7 @@ def _high_pass(image: torch.Tensor) -> torch.Tensor:
     ``avg_pool2d`` with its backward pass on a 256×512 image. The edges are
     replicated by concatenation: the backward pass of ``pad(mode="replicate")``
     adds up its edge gradients in an order that changes with torch's thread
-    count (see :func:`_mean`).
+    count (see :func:`_sum`).
     """
     padded = torch.cat([image[:1], image, image[-1:]])
     padded = torch.cat([padded[:, :1], padded, padded[:, -1:]], dim=1)
@@ -304,8 +304,8 @@ def _high_pass(image: torch.Tensor) -> torch.Tensor:
     return image - (rows[:, :-2] + rows[:, 1:-1] + rows[:, 2:]) / 9.0
 
 
-def _mean(image: torch.Tensor) -> torch.Tensor:
-    """The mean of a 2-D tensor with the same bits at every thread count.
+def _sum(image: torch.Tensor) -> torch.Tensor:
+    """The sum of a 2-D tensor with the same bits at every thread count.
 
     torch splits a whole-tensor sum between its threads, so its rounding,
     and with it the path of the non-convex fit, changes with the thread
@@ -315,7 +315,12 @@ def _mean(image: torch.Tensor) -> torch.Tensor:
     (``tests/test_field.py``); FFTs, element-wise operations and the
     maxima are so already.
     """
-    return image.sum(dim=1).sum() / image.numel()
+    return image.sum(dim=1).sum()
+
+
+def _mean(image: torch.Tensor) -> torch.Tensor:
+    """The mean of a 2-D tensor with the same bits at every thread count (:func:`_sum`)."""
+    return _sum(image) / image.numel()
 
 
 class _MinusMax(torch.autograd.Function):
@@ -323,7 +328,7 @@ class _MinusMax(torch.autograd.Function):
 
     ∂/∂X_k of Σ G·(X − max X) is G_k − [k = argmax]·Σ G: autograd's own
     backward of the broadcast subtraction takes Σ G as a whole-tensor sum,
-    split between threads; here it is :func:`_mean`'s row-wise sum. Of tied
+    split between threads; here it is :func:`_sum`. Of tied
     maxima the first carries the gradient.
     """
 
@@ -337,7 +342,7 @@ class _MinusMax(torch.autograd.Function):
     def backward(ctx, grad):
         (brightest,) = ctx.saved_tensors
         result = grad.clone()
-        result.reshape(-1)[brightest] -= grad.sum(dim=1).sum()
+        result.reshape(-1)[brightest] -= _sum(grad)
         return result
 
 

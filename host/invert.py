@@ -481,7 +481,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         fixed_schedule=fixed, threads=threads,
         reproduce=f"--seed {seed} --iterations {result.iterations} --field-iterations {fit.iterations} "
                   f"--threads {FIXED_THREADS if threads is None else threads}",
-        reproducible=fixed or (fit.clock_steps == 0 and not result.stopped_by_deadline))
+        reproducible=fit.clock_steps == 0 and not result.stopped_by_deadline)
     if report_path is not None:
         contents = {
             **outcome.as_dict(),
