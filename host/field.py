@@ -382,7 +382,7 @@ def _thread_trials(threads: int | None, iterations: int) -> list[int]:
 def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 1500,
               time_budget_s: float | None = 40.0, energy_weight: float = ENERGY_WEIGHT,
               threads: int | None = None, dtype: torch.dtype = torch.float32,
-              progress=None) -> FieldFit:
+              progress=None, initial: np.ndarray | None = None) -> FieldFit:
     """Fit the complex field F of the linear scanner to a target B-scan (stage 1).
 
     Minimises, with Adam (Kingma & Ba 2015; step 0.05, cosine annealing),
@@ -482,8 +482,9 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
                          f"{config.shape[0]}x{config.shape[1]}")
     operator = FieldOperator(config)
     goal_display = target_display(levels)
-    initial = operator.pseudo_inverse(target_magnitude(levels))
-    initial /= np.abs(operator.apply(initial)).max()
+    if initial is None:
+        initial = operator.pseudo_inverse(target_magnitude(levels))
+    initial = initial / np.abs(operator.apply(initial)).max()
     magnitude = np.abs(initial)
     floor = 1e-12 * magnitude.max()  # ln|F| of an exactly cancelled cell
     log_magnitude = torch.tensor(np.log(np.maximum(magnitude, floor)), dtype=dtype, requires_grad=True)

@@ -1,12 +1,27 @@
 """Invert a target B-scan into a digital phantom: stages 1–3 under a time budget.
 
-1. :func:`octcl.host.field.fit_field` — a complex reflectivity field on the
-   pixel grid whose linear (shadowing-free) rendering matches the target.
-2. :func:`octcl.host.decode.decode_field` — point scatterers (x, y, z, E)
-   that reproduce that field.
+1. A complex reflectivity field on the pixel grid whose linear
+   (shadowing-free) rendering matches the target;
+2. point scatterers (x, y, z, E) that reproduce that field;
 3. :func:`octcl.host.refine.refine` — Adam on every scatterer's depth and
    log-energy through the OpenCL scanner and its adjoint, judged by the
    exact score.
+
+Stages 1–2 come in two regimes (:data:`REGIMES`):
+
+- ``linear`` (the default), :mod:`octcl.host.linear`: projections onto the
+  target's level intervals find the field in 2–3 s, and an exact decode
+  puts two rows in every cell at energies so small (E ≲ 1e−10 %) that
+  shadowing changes no display level. The phantom is a numerical device:
+  it renders as the target, but its energies are not tissue-like.
+- ``physical``, the published pipeline: :func:`octcl.host.field.fit_field`
+  (1500 Adam steps on the display, 10–12 s) and
+  :func:`octcl.host.decode.decode_field` (amplitude-capped children at
+  random elevations, shadowing ≤ 1e−4 per A-scan); slower and lower
+  scoring, kept to reproduce the published method and for phantoms
+  scaled like tissue.
+
+Measured on the development set: docs/benchmarks.md ("Linear regime").
 
 The output file is only ever replaced by a complete, validated phantom
 (:meth:`octcl.phantom.Phantom.save` writes a temporary file and renames it),
@@ -43,30 +58,56 @@ from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 
-from .refine import RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, check_target_score, refine
+from .refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, check_target_score, refine
 from .target import check_target, read_target, target_scan
 
 #: Least time between two checkpoint writes during refinement, in seconds.
-#: Formatting and writing 295,000 rows takes 1.5–3.5 s of CPU (measured
-#: idle and under load), in a background thread but on the same two cores.
+#: Formatting and writing 262,000–295,000 rows takes 0.1–0.4 s
+#: (``scripts/bench_io.py``; in a background thread, on the same two cores).
 CHECKPOINT_INTERVAL_S = 20.0
-#: Share of the time budget stage 1 may use, and its cap in seconds. Stage 1
-#: usually ends first at its 1500 iterations (11–12 s on two idle cores);
-#: its length matters little for the end result: on orange.png a 5 s stage 1
-#: ended at 0.99944 after 281 s, the full 11 s one at 0.99950 after 318 s.
+#: Stages 1–2 by name (module docstring), the default first.
+REGIMES = ("linear", "physical")
+#: Share of the time budget stage 1 may use, and its cap in seconds. In the
+#: physical regime stage 1 usually ends first at its 1500 iterations (11–12 s
+#: on two idle cores); its length matters little for the end result: on
+#: orange.png a 5 s stage 1 ended at 0.99944 after 281 s, the full 11 s one
+#: at 0.99950 after 318 s. The linear regime's 300 projections take 2–3 s.
 FIELD_BUDGET_FRACTION = 0.08
 FIELD_BUDGET_CAP_S = 45.0
-#: Stage 1's Adam steps (its learning rate anneals over them).
-FIELD_ITERATIONS = 1500
+#: The linear regime's share: its stage 1 is most of a short budget's work
+#: (with ``--time-budget 10`` it ends within its 5 s share on two idle cores).
+LINEAR_FIELD_BUDGET_FRACTION = 0.5
+#: Stage 1's Adam steps by regime unless given (the learning rate anneals
+#: over them); the linear regime's projections follow them
+#: (:data:`octcl.host.linear.RETRIEVAL_ITERATIONS`).
+FIELD_ITERATIONS = {"physical": 1500, "linear": 300}
+#: Stage 3's schedule in the linear regime: short steps while they gain.
+#: From a linear start the physical regime's schedule fell at once (its
+#: first 20 steps took Uniform B from 0.99964 to 0.9979; steps 4× shorter,
+#: lr_z_um 0.0005 and lr_u 0.005, still to 0.9988, and so did the pixel
+#: term alone): the start has most pixels at the target's very level, and
+#: an Adam step moves every scatterer. So the main run is 10 steps at
+#: (lr_z_um, lr_u) = (1e−4, 1e−3), then restarts of 10 steps at half that
+#: from the best phantom, each repeated while it gains 1e−5 (at most 10).
+#: On skin_2 this took 0.99981 to 0.99992 in 20 steps; where the start is
+#: already at its best, the main run and one restart cost about 20 steps
+#: (docs/benchmarks.md, "Linear regime").
+LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
+                                 restarts=(Phase(10, 0.00005, 0.0005),) * 10, score_every=10)
 #: torch's thread count in a fixed-schedule run unless given. The thread
 #: count changes no bit of the result (docs/reproducibility.md), only the
 #: speed; one thread is never slowed by other processes holding the cores
 #: (see host/refine.py, _ThreadChooser).
 FIXED_THREADS = 1
-#: Seconds kept back from stage 3 for the last checkpoint writes and the
-#: report: a write may be under way when stage 3 ends and the best phantom
-#: still pending (each 1.5–3.5 s for 295,000 rows).
+#: Seconds kept back from stage 3 for the last checkpoint write and the
+#: report, at most: a write may be under way when stage 3 ends and the best
+#: phantom still pending (0.1–0.4 s for 295,000 rows, ``scripts/bench_io.py``),
+#: and on a loaded machine a step can take longer than the last one measured
+#: (seen here: a 30 s budget overrun by 0.13 s with 1.5 s kept back, while
+#: other processes held both cores). A short budget keeps back
+#: :data:`FINAL_RESERVE_FRACTION` of itself instead (1.5 s of 10 s).
 FINAL_RESERVE_S = 7.0
+FINAL_RESERVE_FRACTION = 0.15
 
 
 @dataclass
@@ -105,8 +146,10 @@ class InvertResult:
         phantom at lower learning rates
         (:attr:`octcl.host.refine.RefineSchedule.max_falls`).
     seed : int
+    regime : str
+        Stages 1–2 (:data:`REGIMES`): ``linear`` or ``physical``.
     field_iterations : int
-        Adam steps of stage 1.
+        Adam steps of stage 1 (in the linear regime, before its projections).
     fixed_schedule : bool
         The run followed a fixed schedule (``iterations`` given): no
         decision was taken from the clock.
@@ -141,6 +184,7 @@ class InvertResult:
     stop_reason: str
     falls: list
     seed: int
+    regime: str
     field_iterations: int
     fixed_schedule: bool
     threads: int | None
@@ -156,7 +200,7 @@ class InvertProgress:
     """Where an inversion stands: what :func:`invert` tells its ``progress`` callback.
 
     The run ends at whichever comes first: the end of stage 3's schedule or
-    stage 3's deadline (the budget less :data:`FINAL_RESERVE_S`).
+    stage 3's deadline (the budget less :func:`final_reserve_s`).
     ``seconds_left`` is the earlier of the two estimates (the schedule's from
     stage 3's measured seconds per iteration, once there is one), so it never
     exceeds the time left in the budget; ``fraction`` is
@@ -299,18 +343,84 @@ class _CheckpointWriter:
             raise self._error
 
 
-def _decode(fit, config: ScannerConfig, seed: int) -> Phantom:
-    """Stage 2, with the contract's row target."""
-    from .decode import decode_field
+def final_reserve_s(time_budget_s: float) -> float:
+    """Seconds of the budget stage 3 leaves for the last write: :data:`FINAL_RESERVE_S`, or a share of a short budget."""
+    return min(FINAL_RESERVE_S, FINAL_RESERVE_FRACTION * time_budget_s)
 
-    return decode_field(fit.field, config, max_scatterers=TARGET_ROWS, seed=seed)
+
+def check_regime(regime) -> None:
+    """Raise ValueError unless ``regime`` is one of :data:`REGIMES`."""
+    if regime not in REGIMES:
+        raise ValueError(f"regime must be one of {', '.join(REGIMES)}, got {regime!r}")
+
+
+def default_schedule(regime: str) -> RefineSchedule:
+    """Stage 3's default schedule in a regime: :data:`LINEAR_SCHEDULE`, or ``RefineSchedule()`` (physical)."""
+    check_regime(regime)
+    return LINEAR_SCHEDULE if regime == "linear" else RefineSchedule()
+
+
+@dataclass
+class _Start:
+    """What stages 1–2 hand to stage 3."""
+
+    phantom: Phantom
+    schedule: RefineSchedule     # stage 3's, with the regime's energy floor
+    field_iterations: int        # steps stage 1 took
+    clock_steps: int             # of them, steps whose course the clock set
+    threads: int | None          # torch threads of stage 1 (None: no torch)
+    field_loss: float | None     # stage 1's last loss (physical regime)
+    seconds: dict                # {"field": s, "decode": s}
+
+
+def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell) -> _Start:
+    """Stages 1–2 of the published pipeline (:func:`~octcl.host.field.fit_field`, :func:`~octcl.host.decode.decode_field`)."""
+    from .decode import decode_field
+    from .field import fit_field
+
+    fit = fit_field(scan, config, iterations=iterations, time_budget_s=budget_s, threads=threads, progress=step)
+    tell("decode", 0, 1)
+    start = time.monotonic()
+    phantom = decode_field(fit.field, config, max_scatterers=TARGET_ROWS, seed=seed)
+    return _Start(phantom, schedule, fit.iterations, fit.clock_steps, fit.threads,
+                  float(fit.losses[-1]) if fit.losses.size else None,
+                  {"field": fit.seconds, "decode": time.monotonic() - start})
+
+
+def _linear_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell) -> _Start:
+    """Stages 1–2 in the linear regime (:mod:`octcl.host.linear`); draws nothing at random.
+
+    Stage 1 is the display fit of the physical regime, shortened to
+    ``iterations`` Adam steps, then :func:`~octcl.host.linear.retrieve_field`'s
+    projections from its field; each gets half of ``budget_s``.
+    """
+    from .field import fit_field
+    from .linear import ENERGY_FLOOR_PCT, RETRIEVAL_ITERATIONS, decode_exact, retrieve_field
+
+    half = None if budget_s is None else budget_s / 2
+    fit = fit_field(scan, config, iterations=iterations, time_budget_s=half, threads=threads,
+                    progress=lambda taken, planned, loss: step(taken, planned + RETRIEVAL_ITERATIONS, loss))
+    retrieved = retrieve_field(scan, config, time_budget_s=half, initial=fit.field,
+                               progress=lambda taken, planned: step(fit.iterations + taken,
+                                                                    fit.iterations + planned, None))
+    tell("decode", 0, 1)
+    start = time.monotonic()
+    phantom = decode_exact(retrieved.field, config)
+    schedule = dataclasses.replace(schedule, min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
+    return _Start(phantom, schedule, fit.iterations, fit.clock_steps + retrieved.clock_steps, fit.threads,
+                  float(fit.losses[-1]) if fit.losses.size else None,
+                  {"field": fit.seconds + retrieved.seconds, "decode": time.monotonic() - start})
+
+
+_STARTS = {"linear": _linear_start, "physical": _physical_start}
 
 
 def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, report_path=None,
            progress=None, config: ScannerConfig = DEFAULT_CONFIG,
-           schedule: RefineSchedule = RefineSchedule(), iterations: int | None = None,
-           field_iterations: int = FIELD_ITERATIONS, threads: int | None = None,
-           name: str | None = None, target_score: float | None = None) -> InvertResult:
+           schedule: RefineSchedule | None = None, iterations: int | None = None,
+           field_iterations: int | None = None, threads: int | None = None,
+           name: str | None = None, target_score: float | None = None,
+           regime: str = REGIMES[0]) -> InvertResult:
     """Invert a target B-scan into a phantom file.
 
     Parameters
@@ -330,7 +440,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         target and compiling the kernels included. Without ``iterations``
         (deadline mode) stage 1 gets min(8 % of it, 45 s), stage 2 runs
         once and stage 3 gets the rest, so how far each stage gets depends
-        on the machine's speed and load. With ``iterations`` it is only a
+        on the machine's speed and load (linear regime: stage 1 gets up to
+        half of it). With ``iterations`` it is only a
         ceiling: :class:`TimeBudgetExceeded` if the fixed schedule has not
         ended when stage 3 would have to stop.
     seed : int
@@ -342,8 +453,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         ``progress(InvertProgress)`` at each step of every stage and once at
         the end (stage ``done``).
     config : ScannerConfig
-    schedule : RefineSchedule
-        Stage 3's schedule (cut short by the budget in deadline mode).
+    schedule : RefineSchedule, optional
+        Stage 3's schedule (cut short by the budget in deadline mode);
+        default :func:`default_schedule` of the regime.
     iterations : int, optional
         Fixed-schedule mode: stage 1 runs ``field_iterations`` steps and
         stage 3 the first ``iterations`` Adam steps of ``schedule``
@@ -353,8 +465,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         version and device the output file is the same, byte for byte
         (``docs/reproducibility.md``). A deadline run's result says how to
         run its schedule this way (:attr:`InvertResult.reproduce`).
-    field_iterations : int
-        Stage 1's Adam steps (in deadline mode: at most, within its time share).
+    field_iterations : int, optional
+        Stage 1's steps (in deadline mode: at most, within its time share);
+        default :data:`FIELD_ITERATIONS` of the regime.
     threads : int, optional
         torch's CPU thread count for the whole run. In deadline mode it is
         otherwise chosen by timing steps, which follows the machine's load.
@@ -363,6 +476,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         ``"target"`` for an array.
     target_score : float, optional
         End stage 3 as soon as an exact evaluation reaches this score.
+    regime : str
+        Stages 1–2 (:data:`REGIMES`, module docstring): ``linear`` (default)
+        or ``physical``. In the linear regime the seed changes nothing.
 
     Returns
     -------
@@ -386,7 +502,6 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     """
     from octcl._scanner_op import ScannerKernels
 
-    from .field import fit_field
     from .loss import ExactScore
 
     started = time.monotonic()
@@ -395,12 +510,15 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     for label, count in (("threads", threads), ("field_iterations", field_iterations)):
         if count is not None and not (isinstance(count, int) and count >= 1):
             raise ValueError(f"{label} must be a whole number ≥ 1, got {count!r}")
+    check_regime(regime)
+    field_iterations = FIELD_ITERATIONS[regime] if field_iterations is None else field_iterations
+    schedule = default_schedule(regime) if schedule is None else schedule
     check_target_score(target_score)  # before the work starts, as the other arguments
     fixed = iterations is not None
     if fixed:
         schedule = schedule.truncated(iterations)
         threads = FIXED_THREADS if threads is None else threads
-    deadline = started + time_budget_s
+    deadline, reserve_s = started + time_budget_s, final_reserve_s(time_budget_s)
     # A bad output path fails now, not after the budget is spent.
     output_path = check_output_path(output_path)
     if report_path is not None:
@@ -416,11 +534,12 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     def elapsed():
         return time.monotonic() - started
 
-    tell = _ProgressReporter(progress, started, deadline - FINAL_RESERVE_S)
-    field_budget = None if fixed else min(FIELD_BUDGET_FRACTION * time_budget_s, FIELD_BUDGET_CAP_S)
+    tell = _ProgressReporter(progress, started, deadline - reserve_s)
+    fraction = LINEAR_FIELD_BUDGET_FRACTION if regime == "linear" else FIELD_BUDGET_FRACTION
+    field_budget = None if fixed else min(fraction * time_budget_s, FIELD_BUDGET_CAP_S)
     # In a fixed schedule the budget is only a safety ceiling, checked at
     # every step; in deadline mode the stages fit themselves inside it.
-    ceiling = _Clock(None, deadline - FINAL_RESERVE_S if fixed else None)
+    ceiling = _Clock(None, deadline - reserve_s if fixed else None)
     writer = None
 
     def field_step(iteration, steps, loss):
@@ -429,16 +548,12 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
 
     try:
         tell("field", 0, 0)
-        fit = fit_field(target_scan(target), config, iterations=field_iterations, time_budget_s=field_budget,
-                        threads=threads, progress=field_step)
-        seconds["field"] = fit.seconds
-        trace.append({"time_s": elapsed(), "stage": "field", "iteration": fit.iterations,
-                      "loss": float(fit.losses[-1]) if fit.losses.size else None, "score": None})
-
-        tell("decode", 0, 1)
-        start = time.monotonic()
-        phantom = _decode(fit, config, seed)
-        seconds["decode"] = time.monotonic() - start
+        first = _STARTS[regime](target_scan(target), config, schedule, field_iterations, field_budget, threads, seed,
+                                field_step, tell)
+        seconds.update(first.seconds)
+        trace.append({"time_s": elapsed(), "stage": "field", "iteration": first.field_iterations,
+                      "loss": first.field_loss, "score": None})
+        phantom = first.phantom
         writer = _CheckpointWriter(output_path, config, CHECKPOINT_INTERVAL_S)
         writer.offer(phantom)
 
@@ -449,7 +564,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         seconds["setup"] = time.monotonic() - start
         ceiling.check_ceiling("before stage 3")
         offset = elapsed()
-        result = refine(phantom, target, schedule, deadline=None if fixed else deadline - FINAL_RESERVE_S,
+        result = refine(phantom, target, first.schedule, deadline=None if fixed else deadline - reserve_s,
                         kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score,
                         on_improvement=lambda improved, components: writer.offer(improved),
                         ceiling=ceiling.ceiling if fixed else None, threads=threads,
@@ -477,20 +592,21 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         scatterers=len(result.phantom), iterations=result.iterations, seconds=seconds,
         checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
         stopped_by_deadline=result.stopped_by_deadline, stop_reason=result.stop_reason,
-        falls=result.falls, seed=seed, field_iterations=fit.iterations,
+        falls=result.falls, seed=seed, field_iterations=first.field_iterations, regime=regime,
         fixed_schedule=fixed, threads=threads,
-        reproduce=f"--seed {seed} --iterations {result.iterations} --field-iterations {fit.iterations} "
+        reproduce=f"--regime {regime} --seed {seed} --iterations {result.iterations} "
+                  f"--field-iterations {first.field_iterations} "
                   f"--threads {FIXED_THREADS if threads is None else threads}",
-        reproducible=fit.clock_steps == 0 and not result.stopped_by_deadline)
+        reproducible=first.clock_steps == 0 and not result.stopped_by_deadline)
     if report_path is not None:
         contents = {
             **outcome.as_dict(),
             "initial_components": result.initial_components,
             "settings": {"time_budget_s": time_budget_s, "field_budget_s": field_budget,
-                         "field_iterations_planned": field_iterations, "field_threads": fit.threads,
-                         "field_clock_steps": fit.clock_steps,
+                         "field_iterations_planned": field_iterations, "field_threads": first.threads,
+                         "field_clock_steps": first.clock_steps,
                          "refine_threads": result.torch_threads,
-                         "schedule": dataclasses.asdict(schedule), "config": dataclasses.asdict(config),
+                         "schedule": dataclasses.asdict(first.schedule), "config": dataclasses.asdict(config),
                          "checkpoint_interval_s": CHECKPOINT_INTERVAL_S, "target_score": target_score},
             "refine_timings_s": result.timings_s,
             "refine_cpu_s": result.cpu_s,
@@ -502,4 +618,5 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
 
 
 __all__ = ["CHECKPOINT_INTERVAL_S", "FIELD_ITERATIONS", "FIXED_THREADS", "InvertProgress", "InvertResult",
+           "LINEAR_SCHEDULE", "REGIMES", "check_regime", "default_schedule",
            "TimeBudgetExceeded", "invert", "peak_memory_mib", "read_target"]

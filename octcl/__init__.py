@@ -15,7 +15,7 @@ from .config import ScannerConfig
 from .phantom import Phantom
 from .render import render
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 __all__ = ["Phantom", "ScannerConfig", "render", "score", "invert", "__version__"]
 
 

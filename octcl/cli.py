@@ -235,16 +235,16 @@ def _cmd_invert(args) -> int:
         raise UsageError("--targets needs --out DIR")
     if args.target and not args.output:
         raise UsageError("invert needs -o PHANTOM.txt")
-    from .host.invert import TimeBudgetExceeded, invert
+    from .host.invert import REGIMES, TimeBudgetExceeded, default_schedule, invert
 
     # Stage options for one scan or each scan of a batch: the fixed schedule's (docs/reproducibility.md)
     # and the target score.
     schedule = {name: getattr(args, name) for name in ("iterations", "field_iterations", "threads", "target_score")
                 if getattr(args, name) is not None}
-    if args.stop_rule != "restarts":  # the default schedule is left out, so earlier batches still resume
-        from .host.refine import RefineSchedule
-
-        schedule["schedule"] = RefineSchedule().with_stop_rule(args.stop_rule)
+    if args.regime != REGIMES[0]:  # defaults are left out, so earlier batches still resume
+        schedule["regime"] = args.regime
+    if args.stop_rule != "restarts":
+        schedule["schedule"] = default_schedule(args.regime).with_stop_rule(args.stop_rule)
     if args.target:
         given = [f"--{name.replace('_', '-')}" for name in _BATCH_ONLY if getattr(args, name) not in (None, False)]
         if given:
@@ -366,14 +366,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
     p.add_argument("--time-budget", type=float, default=600.0,
                    help="seconds per scan (default 600); with --iterations only a ceiling that fails the run")
-    p.add_argument("--seed", type=int, default=0, help="seed of the decoder's random elevations (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the physical regime's random elevations (default 0; "
+                                                       "the linear regime draws nothing at random)")
     p.add_argument("--iterations", type=int, metavar="N",
                    help="fixed schedule: N Adam iterations of stage 3 and --field-iterations of stage 1, "
                         "no decision from the clock, at --threads threads: the same target, seed, N, "
                         "version and device give the same file, byte for byte. Without it the time budget "
                         "decides how far each stage gets (the summary says how to repeat that schedule)")
+    p.add_argument("--regime", choices=("linear", "physical"), default="linear",
+                   help="stages 1-2: linear (default): a field whose rendering has the target's levels in "
+                        "seconds, decoded exactly into 2 scatterers a pixel at energies too small to shadow; "
+                        "physical: the published pipeline, tissue-like energies, minutes (README)")
     p.add_argument("--field-iterations", type=int, metavar="M",
-                   help="stage 1 iterations (default 1500; at most, within its time share, without --iterations)")
+                   help="stage 1 Adam steps (default 300 linear, 1500 physical; at most, within its time share, "
+                        "without --iterations)")
     p.add_argument("--threads", type=int, metavar="T",
                    help="torch CPU threads for the whole run (default with --iterations: 1; without: chosen "
                         "by timing)")

@@ -57,12 +57,13 @@ def test_bad_budget_is_refused(layers_path, tmp_path):
 
 
 def test_budget_is_respected_and_report_written(layers_path, tmp_path):
+    """The physical regime's stages cut by the clock: stage 1 by its share, stage 3 by the deadline."""
     budget = 30.0
     output, report_path = tmp_path / "layers.txt", tmp_path / "layers.json"
     calls = []
     start = time.monotonic()
     result = invert(layers_path, output, time_budget_s=budget, seed=3, report_path=report_path,
-                    progress=calls.append)
+                    progress=calls.append, regime="physical")
     elapsed = time.monotonic() - start
     assert elapsed < budget + 5.0
     _assert_contract(output)
@@ -82,7 +83,7 @@ def test_budget_is_respected_and_report_written(layers_path, tmp_path):
     assert final.iteration == result.iterations
 
     report = json.loads(report_path.read_text())
-    assert report["seed"] == 3 and report["settings"]["time_budget_s"] == budget
+    assert report["seed"] == 3 and report["settings"]["time_budget_s"] == budget and report["regime"] == "physical"
     # Stage 1's share, 2.4 s, is too short for its 1500 steps: the clock cut it and set its learning rate.
     assert result.field_iterations < 1500 and report["settings"]["field_clock_steps"] > 0
     assert set(COMPONENTS) <= set(report["components"])
@@ -95,6 +96,18 @@ def test_budget_is_respected_and_report_written(layers_path, tmp_path):
     assert max(entry["score"] for entry in scored) == pytest.approx(result.score)
     assert final.score == scored[-1]["score"]  # the last exact score, not the stage-2 one
     assert final.score_elapsed_s == pytest.approx(scored[-1]["time_s"], abs=0.5)
+
+
+def test_a_ten_second_budget_gives_a_complete_linear_phantom(layers_path, tmp_path):
+    """The default (linear) regime within 10 s: a phantom in the contract, scored, on time."""
+    output = tmp_path / "layers.txt"
+    start = time.monotonic()
+    result = invert(layers_path, output, time_budget_s=10.0)
+    elapsed = time.monotonic() - start
+    assert elapsed < 10.0 + 2.0
+    phantom = _assert_contract(output)
+    assert result.regime == "linear" and result.scatterers == len(phantom) <= 2 * 256 * 512
+    assert result.score >= result.initial_score > 0.999
 
 
 def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):

@@ -1,0 +1,372 @@
+"""The linear regime: stages 1–2 in seconds, a phantom that renders as its field does, cell for cell.
+
+Scale and shadowing. The display divides by the B-scan's own maximum
+(``shared/physics.md`` §2 step 10), so multiplying every amplitude a_j by one
+factor c changes a rendering only through shadowing, whose terms (B_ij·a_j)²
+scale with c². In A-scan i a scatterer is dimmed by its transmission
+T_ij = Π_m (1 − (B_im·a_m)²) ≥ 1 − s_i, s_i = Σ_m (B_im·a_m)², so the
+shadowing changes A[n, i] by at most s_i·Σ_j |c_ij|, the sum of the
+magnitudes of the contributions to that pixel. :func:`decode_exact` scales
+the phantom so that max_i s_i = :data:`SHADOW_BOUND` = 1e−12: even where the
+contributions cancel a thousandfold (Σ|c| = 10³·|A|), a pixel's magnitude
+moves by 1e−9 of itself, 4e−8 dB, about 1e−7 of a display level; float64
+rounding in the scanner's own sums is of the same order. The energies are
+then E ≲ 1e−12 % for the brightest rows, within the task's 0 ≤ E ≤ 100, and
+the phantom file's 8 significant digits keep their relative precision at any
+scale. ``tests/test_linear.py`` renders decoded phantoms with the float64
+reference scanner, shadowing included, and compares the levels with those
+of the field.
+
+Stage 1, :func:`retrieve_field`. In this regime the scanner is the linear
+operator A = H·F of :class:`octcl.host.field.FieldOperator` (a lateral
+Gaussian and the windowed depth DFT, diagonal in the 2-D Fourier domain).
+The target's 8-bit level L_p of pixel p says only that |A_p|/max|A| lies in
+an interval [l_p, u_p] (the display interval of the level, de-logged; level 0:
+[0, u_p]). Every F with |(HF)_p| in its interval for all p renders the
+target exactly, so stage 1 looks for a point of the intersection of
+𝓜 = {A : l ≤ |A| ≤ u} and the range of H. Alternating projections
+(Gerchberg & Saxton 1972; Fienup 1982) do this: project A = HF onto 𝓜
+(keep each pixel's phase, clip its magnitude into the interval), go back to
+F by the Tikhonov-regularised inverse of H (:meth:`FieldOperator.pseudo_inverse`),
+repeat. With Nesterov's momentum on F (Nesterov 1983; as in the accelerated
+projection methods of phase retrieval, e.g. Xu et al., "Accelerated
+Wirtinger flow", 2018) the iteration is
+
+    Y_k = F_k + β·(F_k − F_{k−1}),
+    F_{k+1} = Y_k + α·H⁺(P_𝓜(H·Y_k) − H·Y_k).
+
+H⁺ inverts the circulant extension of H (the columns zero-padded), not
+the cropped operator itself, so the preconditioned step H·H⁺ has gains
+slightly above 1 near the first and last A-scans; with momentum those
+directions diverge at α = 1 (seen on every synthetic scan of the
+development set, not on the real one), and α = :data:`STEP` = 0.8 keeps
+them contracting. The intervals are shrunk by :data:`INTERVAL_MARGIN` (a
+tenth of their width in dB, at each end) so that the iterate lands inside
+a level rather than on its edge. The start is the regularised inverse of
+the de-logged target with zero phase, as in stage 1 of the physical regime.
+
+Measured on the development set (``scripts/bench_invert.py``,
+docs/benchmarks.md; the 8-component score of the field's own 8-bit
+rendering) the score rises within 100 iterations and changes by less than
+1e−4 after 300 (:data:`RETRIEVAL_ITERATIONS`), 2–3 s on two cores.
+
+Stage 2, :func:`decode_exact`. A scatterer at depth z = z_n + o (z_n the
+cell depth of :func:`octcl.host.field.cell_depths_um`) adds
+a·e^{−2i·k_q·z} to the spectrum: on the grid that is the cell value
+a·e^{−2i·k0·z} times the depth-kernel shift e^{−2i·(k_q − k0)·o}, a factor
+per wavenumber. With a fixed set of offsets o_d the rendering of the
+phantom is therefore exactly linear in the rows' amplitudes and diagonal
+in the depth DFT per offset:
+
+    Â[q, ·] = w_q·Σ_d e^{−2i(k_q − k0)·o_d}·DFT_n(M_d)[q, ·],
+
+M_d[n, i] the cell values of the rows at offset o_d. The four offsets
+o_d = (−3, −1, 1, 3)·λ/16 give carrier phases 3π/4, π/4, −π/4, −3π/4:
+any complex value is a non-negative combination of two neighbouring ones,
+so each cell becomes two rows (four offsets would be 4× the rows). Their
+depth-kernel shifts are at most 2δk·3λ/16 of a DFT bin's phase per bin,
+which :func:`decode_exact` undoes by iterating F' ← F' + (F − F_eff(F'))
+(each step shrinks the error by the largest |2(k_q − k0)·o_d| ≈ 0.13; 12
+steps take it below float64 rounding). In the first row z_0 = 0, so the
+negative offsets there move by λ/2 (same phase, another shift: the
+formula holds with per-row offsets). The result is 2 rows per non-zero
+cell, 262,144 for a full 256×512 grid, at elevation y = 0 and on the
+A-scan lines x_i, below the contract's 295,000 rows.
+
+References
+----------
+Gerchberg & Saxton, "A practical algorithm for the determination of phase
+from image and diffraction plane pictures", Optik 35, 1972.
+Fienup, "Phase retrieval algorithms: a comparison", Appl. Opt. 21(15), 1982.
+Nesterov, "A method of solving a convex programming problem with
+convergence rate O(1/k²)", Soviet Math. Dokl. 27, 1983.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import _reference as ref
+from .._io import GREY_LUT
+from ..config import DEFAULT_CONFIG, ScannerConfig
+from ..phantom import Phantom
+from ..render import Rendering
+from .field import FieldOperator, cell_depths_um, target_levels, target_magnitude
+
+#: Largest Σ_j (B_ij·a_j)² of any A-scan in a decoded phantom (module docstring).
+SHADOW_BOUND = 1e-12
+#: Projection steps of :func:`retrieve_field`.
+RETRIEVAL_ITERATIONS = 300
+#: α, the length of the projection step (module docstring: ≤ 1, and < 1 with momentum).
+STEP = 0.8
+#: β, Nesterov's momentum.
+MOMENTUM = 0.9
+#: Share of each level's interval (in dB) given up at each end.
+INTERVAL_MARGIN = 0.1
+#: Updates of the placed field in :func:`decode_exact`.
+DECODE_CORRECTIONS = 12
+#: Stage 3's floor of E (%) for a decoded phantom (the physical regime's is 1e−20 %):
+#: at :data:`SHADOW_BOUND` the brightest rows are near 1e−11 % and the
+#: faintest 1e−26 %, 150 dB below. 1e−36 % is an amplitude of 1e−19,
+#: a normal float32 number, and 80 dB below the faintest decoded row.
+ENERGY_FLOOR_PCT = 1e-36
+#: Carrier offsets of the rows of a cell, in units of λ (module docstring).
+OFFSETS_IN_WAVELENGTHS = np.array([-3.0, -1.0, 1.0, 3.0]) / 16.0
+
+
+def level_magnitude_bounds(levels: np.ndarray, margin: float = INTERVAL_MARGIN) -> tuple[np.ndarray, np.ndarray]:
+    """The interval [l, u] of |A|/max|A| that renders each 8-bit level.
+
+    The scanner writes level GREY_LUT[c] for colour index c = min(⌊256·D⌋, 255),
+    D = 1 + 20·log10(|A|/max|A|)/51 (clamped at 0). A level L therefore comes
+    from D in the union of [c/256, (c + 1)/256) over the indices c with
+    GREY_LUT[c] = L, i.e. |A|/max|A| in [10^{51(D_lo − 1)/20}, 10^{51(D_hi − 1)/20});
+    the 24 levels the colour map skips (a target quantised plainly has them)
+    take the plain quantiser's interval [L/256, (L + 1)/256). Level 0 holds
+    everything at or below the floor: l = 0.
+
+    Parameters
+    ----------
+    levels : ndarray of uint8
+    margin : float
+        Share of each interval's width in D (so in dB) removed at each end,
+        in [0, 0.5).
+
+    Returns
+    -------
+    lower, upper : ndarray of float64, the shape of ``levels``
+    """
+    if not 0 <= margin < 0.5:
+        raise ValueError(f"margin must be in [0, 0.5), got {margin}")
+    index = np.arange(256)
+    low, high = np.full(256, np.inf), np.full(256, -np.inf)
+    np.minimum.at(low, GREY_LUT, index / 256.0)
+    np.maximum.at(high, GREY_LUT, (index + 1) / 256.0)
+    skipped = ~np.isfinite(low)
+    low[skipped], high[skipped] = index[skipped] / 256.0, (index[skipped] + 1) / 256.0
+    width = high - low
+    low, high = low + margin * width, high - margin * width
+
+    def magnitude(display):
+        return 10.0 ** (ref.DISPLAY_RANGE_DB * (display - 1.0) / 20.0)
+
+    lower, upper = magnitude(low)[levels], magnitude(high)[levels]
+    lower[levels == 0] = 0.0
+    return lower, upper
+
+
+@dataclass
+class LinearFit:
+    """Result of :func:`retrieve_field`.
+
+    Attributes
+    ----------
+    field : ndarray of complex128, (Nz, Nx)
+        F on the cell grid, scaled so that the brightest pixel of A(F) has |A| = 1.
+    display : ndarray of float64, (Nz, Nx)
+        D of A(F), as :class:`octcl.render.Rendering` computes it.
+    identical : float
+        Share of pixels whose 8-bit level is the target's.
+    iterations : int
+        Projection steps taken.
+    seconds : float
+        Wall time, the start included.
+    clock_steps : int
+        1 if the time budget ended the iterations early, else 0 (the fit
+        then took a decision from the clock).
+    """
+
+    field: np.ndarray
+    display: np.ndarray
+    identical: float
+    iterations: int
+    seconds: float
+    clock_steps: int
+
+
+def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = RETRIEVAL_ITERATIONS,
+                   time_budget_s: float | None = None, progress=None,
+                   initial: np.ndarray | None = None) -> LinearFit:
+    """A field F whose linear rendering has the target's levels: accelerated projections (module docstring).
+
+    Parameters
+    ----------
+    target : ndarray
+        uint8 levels (Nz, Nx), or a float image in [0, 1]
+        (:func:`octcl.host.field.target_levels`).
+    config : ScannerConfig
+    iterations : int
+        Projection steps (≥ 1).
+    time_budget_s : float, optional
+        Stop after the first step that ends past this many seconds.
+    progress : callable, optional
+        ``progress(iteration, iterations)`` after each step.
+    initial : ndarray of complex, (Nz, Nx), optional
+        The start; default the regularised inverse of the de-logged target
+        with zero phase.
+
+    Returns
+    -------
+    LinearFit
+    """
+    start = time.perf_counter()
+    if not (isinstance(iterations, int) and iterations >= 1):
+        raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
+    levels = target_levels(target)
+    if levels.shape != config.shape:
+        raise ValueError(f"target is {levels.shape[0]}x{levels.shape[1]}, the scanner makes "
+                         f"{config.shape[0]}x{config.shape[1]}")
+    operator = FieldOperator(config)
+    lower, upper = level_magnitude_bounds(levels)
+    if initial is None:
+        initial = operator.pseudo_inverse(target_magnitude(levels).astype(np.complex128))
+    field = np.asarray(initial, dtype=np.complex128) / np.abs(operator.apply(initial)).max()
+    previous = field
+    taken = clock_steps = 0
+    while taken < iterations:
+        if time_budget_s is not None and taken and time.perf_counter() - start > time_budget_s:
+            clock_steps = 1
+            break
+        ahead = field + MOMENTUM * (field - previous)
+        a_scans = operator.apply(ahead)
+        magnitude = np.abs(a_scans)
+        clipped = np.clip(magnitude, lower, upper)
+        # P_𝓜: the phase kept, the magnitude clipped; a pixel at exactly 0 gets phase 0.
+        projected = np.where(magnitude > 0, a_scans * (clipped / np.where(magnitude > 0, magnitude, 1.0)), clipped)
+        previous, field = field, ahead + STEP * operator.pseudo_inverse(projected - a_scans)
+        taken += 1
+        if progress is not None:
+            progress(taken, iterations)
+    a_scans = operator.apply(field)
+    scale = np.abs(a_scans).max()
+    field, a_scans = field / scale, a_scans / scale
+    rendering = Rendering.from_a_scans(a_scans)
+    return LinearFit(field=field, display=rendering.display, identical=float(np.mean(rendering.levels == levels)),
+                     iterations=taken, seconds=time.perf_counter() - start, clock_steps=clock_steps)
+
+
+# ------------------------------------------------------------------ decode
+def row_offsets_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """Depth offsets o_{d,n} (µm) of the four rows of a cell in row n: (4, Nz).
+
+    (−3, −1, 1, 3)·λ/16 from the cell depth; in row 0 (z_0 = 0) the negative
+    ones move by λ/2, keeping their carrier phase, so that z ≥ 0.
+    """
+    offsets = np.repeat((OFFSETS_IN_WAVELENGTHS * config.wavelength_um)[:, None], config.depth_pixels, axis=1)
+    offsets[:, 0] = np.where(offsets[:, 0] < 0, offsets[:, 0] + config.wavelength_um / 2, offsets[:, 0])
+    return offsets
+
+
+def _carriers(config: ScannerConfig) -> np.ndarray:
+    """e^{−2i·k0·o_d}, the carrier phase of each offset (the same in every row)."""
+    return np.exp(-2j * (2 * np.pi / config.wavelength_um) * OFFSETS_IN_WAVELENGTHS * config.wavelength_um)
+
+
+def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
+    """Non-negative weights p_d, two per value, with Σ_d p_d·carriers[d] = value.
+
+    ``carriers`` are unit phasors 90° apart (:func:`_carriers`); a value goes
+    to the two whose angles enclose it. Returns (len(carriers),) + values.shape.
+    """
+    angles = np.angle(carriers)
+    order = np.argsort(angles)
+    weights = np.zeros((carriers.size,) + values.shape)
+    turn = 2 * np.pi
+    for position, first in enumerate(order):
+        second = order[(position + 1) % order.size]
+        sector = (angles[second] - angles[first]) % turn
+        inside = (np.angle(values) - angles[first]) % turn < sector
+        # value = p·c1 + q·c2 with real p, q: Im(conj(c1)·c2) is the determinant.
+        c1, c2, value = carriers[first], carriers[second], values[inside]
+        determinant = (np.conj(c1) * c2).imag
+        weights[first][inside] = (np.conj(value) * c2).imag / determinant
+        weights[second][inside] = (np.conj(c1) * value).imag / determinant
+    return np.maximum(weights, 0.0)  # rounding can leave −1e−17 on a sector's edge
+
+
+def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """The grid field that renders like rows of amplitude ``weights`` at :func:`row_offsets_um`.
+
+    F_eff = IDFT_q(Σ_d e^{−2i(k_q − k0)·o_d}·DFT_n(M_d)), M_d = weights_d·e^{−2i·k0·(z_n + o_d)}
+    (module docstring); row 0's own offsets enter as one extra term.
+    """
+    k = ref.wavenumbers(config)
+    k0 = 2 * np.pi / config.wavelength_um
+    depth_um = cell_depths_um(config)[:, None]
+    offsets = row_offsets_um(config)
+    spectrum = np.zeros(weights.shape[1:], dtype=np.complex128)
+    for d in range(weights.shape[0]):
+        cells = weights[d] * np.exp(-2j * k0 * (depth_um + offsets[d][:, None]))
+        first_row = cells[0].copy()
+        cells[0] = 0.0
+        spectrum += np.exp(-2j * (k - k0) * offsets[d, 1])[:, None] * np.fft.fft(cells, axis=0)
+        spectrum += np.exp(-2j * (k - k0) * offsets[d, 0])[:, None] * first_row[None, :]
+    return np.fft.ifft(spectrum, axis=0)
+
+
+def _cell_weights(field: np.ndarray, config: ScannerConfig) -> np.ndarray:
+    """:func:`split_on_carriers` of each cell value with its cell's own carrier e^{−2i·k0·z_n} taken out."""
+    k0 = 2 * np.pi / config.wavelength_um
+    return split_on_carriers(field * np.exp(2j * k0 * cell_depths_um(config))[:, None], _carriers(config))
+
+
+def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
+                 shadow_bound: float = SHADOW_BOUND, corrections: int = DECODE_CORRECTIONS) -> Phantom:
+    """Two rows per non-zero cell that render, without shadowing, exactly as the field (module docstring).
+
+    Parameters
+    ----------
+    field : ndarray of complex, (Nz, Nx)
+        F on the cell grid; any overall scale.
+    config : ScannerConfig
+    shadow_bound : float
+        max_i Σ_j (B_ij·a_j)² of the result, in (0, 0.5]: the absolute scale.
+    corrections : int
+        Updates of the placed field for the rows' depth-kernel shifts.
+
+    Returns
+    -------
+    Phantom
+        Rows ordered by cell (row-major) and offset, x on the A-scan lines,
+        y = 0, 0 ≤ z ≤ Nz·Δz, E = 100·a².
+
+    Raises
+    ------
+    ValueError
+        A field of the wrong shape, non-finite or all zero; a bound outside (0, 0.5].
+    """
+    field = np.asarray(field, dtype=np.complex128)
+    if field.shape != config.shape:
+        raise ValueError(f"field is {field.shape}, the scanner's grid is {config.shape}")
+    if not np.isfinite(field).all():
+        raise ValueError("field has non-finite values")
+    if not np.any(field):
+        raise ValueError("the field is zero everywhere: there is nothing to decode")
+    if not 0 < shadow_bound <= 0.5:
+        raise ValueError(f"shadow_bound must be in (0, 0.5], got {shadow_bound}")
+    placed = field
+    for _ in range(corrections):
+        placed = placed + (field - rendered_cells(_cell_weights(placed, config), config))
+    weights = _cell_weights(placed, config)
+    # Scale: Σ_j (B_ij·a_j)² over an A-scan is a lateral convolution of the
+    # columns' Σ a² with e^{−2d²/w0²} (y = 0), over the offsets the float64
+    # scanner resolves (octcl._reference.SHADOW_EXACT_RADIUS_SQ).
+    w0, pitch = config.beam_radius_um, config.lateral_pitch_um
+    reach = math.ceil(math.sqrt(ref.SHADOW_EXACT_RADIUS_SQ) * w0 / pitch)
+    offsets_um = np.arange(-reach, reach + 1) * pitch
+    per_ascan = np.convolve((weights**2).sum(axis=(0, 1)), np.exp(-2 * offsets_um**2 / w0**2), mode="same")
+    scale = math.sqrt(shadow_bound / per_ascan.max())
+    row, column, offset = np.nonzero(np.moveaxis(weights, 0, -1) > 0)
+    amplitude = scale * np.moveaxis(weights, 0, -1)[row, column, offset]
+    z_um = cell_depths_um(config)[row] + row_offsets_um(config)[offset, row]
+    x_um = ref.ascan_positions_um(config)[column]
+    return Phantom(x_um, np.zeros_like(x_um), z_um, 100.0 * amplitude**2)
+
+
+__all__ = ["DECODE_CORRECTIONS", "ENERGY_FLOOR_PCT", "INTERVAL_MARGIN", "LinearFit", "MOMENTUM", "RETRIEVAL_ITERATIONS",
+           "SHADOW_BOUND", "STEP", "decode_exact", "level_magnitude_bounds", "rendered_cells",
+           "retrieve_field", "row_offsets_um", "split_on_carriers"]
