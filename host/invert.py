@@ -371,9 +371,10 @@ class _Start:
     threads: int | None          # torch threads of stage 1 (None: no torch)
     field_loss: float | None     # stage 1's last loss (physical regime)
     seconds: dict                # {"field": s, "decode": s}
+    candidates: list | None = None  # the linear regime's stage-1 candidates (LinearStart.candidates)
 
 
-def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell) -> _Start:
+def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell, exact_score) -> _Start:
     """Stages 1–2 of the published pipeline (:func:`~octcl.host.field.fit_field`, :func:`~octcl.host.decode.decode_field`)."""
     from .decode import decode_field
     from .field import fit_field
@@ -387,29 +388,25 @@ def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed,
                   {"field": fit.seconds, "decode": time.monotonic() - start})
 
 
-def _linear_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell) -> _Start:
+def _linear_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell, exact_score) -> _Start:
     """Stages 1–2 in the linear regime (:mod:`octcl.host.linear`); draws nothing at random.
 
-    Stage 1 is the display fit of the physical regime, shortened to
-    ``iterations`` Adam steps, then :func:`~octcl.host.linear.retrieve_field`'s
-    projections from its field; each gets half of ``budget_s``.
+    Stage 1 is :func:`~octcl.host.linear.linear_start`, display fits of
+    ``iterations`` steps and multiples, each followed by projections, judged
+    by the exact score; stage 2 :func:`~octcl.host.linear.decode_exact`.
     """
-    from .field import fit_field
-    from .linear import ENERGY_FLOOR_PCT, RETRIEVAL_ITERATIONS, decode_exact, retrieve_field
+    from .linear import ENERGY_FLOOR_PCT, decode_exact, linear_start
 
-    half = None if budget_s is None else budget_s / 2
-    fit = fit_field(scan, config, iterations=iterations, time_budget_s=half, threads=threads,
-                    progress=lambda taken, planned, loss: step(taken, planned + RETRIEVAL_ITERATIONS, loss))
-    retrieved = retrieve_field(scan, config, time_budget_s=half, initial=fit.field,
-                               progress=lambda taken, planned: step(fit.iterations + taken,
-                                                                    fit.iterations + planned, None))
+    found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, adam_steps=iterations,
+                         time_budget_s=budget_s, threads=threads,
+                         progress=lambda taken, planned: step(taken, planned, None))
     tell("decode", 0, 1)
     start = time.monotonic()
-    phantom = decode_exact(retrieved.field, config)
+    phantom = decode_exact(found.field, config)
     schedule = dataclasses.replace(schedule, min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
-    return _Start(phantom, schedule, fit.iterations, fit.clock_steps + retrieved.clock_steps, fit.threads,
-                  float(fit.losses[-1]) if fit.losses.size else None,
-                  {"field": fit.seconds + retrieved.seconds, "decode": time.monotonic() - start})
+    # field_iterations: the first candidate's length, from which the others follow (the reproduce options).
+    return _Start(phantom, schedule, iterations, found.clock_steps, found.threads, None,
+                  {"field": found.seconds, "decode": time.monotonic() - start}, found.candidates)
 
 
 _STARTS = {"linear": _linear_start, "physical": _physical_start}
@@ -548,8 +545,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
 
     try:
         tell("field", 0, 0)
+        exact_score = ExactScore(target)
         first = _STARTS[regime](target_scan(target), config, schedule, field_iterations, field_budget, threads, seed,
-                                field_step, tell)
+                                field_step, tell, exact_score)
         seconds.update(first.seconds)
         trace.append({"time_s": elapsed(), "stage": "field", "iteration": first.field_iterations,
                       "loss": first.field_loss, "score": None})
@@ -560,7 +558,6 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         tell("setup", 0, 1)
         start = time.monotonic()
         kernels = ScannerKernels(config)
-        exact_score = ExactScore(target)
         seconds["setup"] = time.monotonic() - start
         ceiling.check_ceiling("before stage 3")
         offset = elapsed()
@@ -604,7 +601,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
             "initial_components": result.initial_components,
             "settings": {"time_budget_s": time_budget_s, "field_budget_s": field_budget,
                          "field_iterations_planned": field_iterations, "field_threads": first.threads,
-                         "field_clock_steps": first.clock_steps,
+                         "field_clock_steps": first.clock_steps, "field_candidates": first.candidates,
                          "refine_threads": result.torch_threads,
                          "schedule": dataclasses.asdict(first.schedule), "config": dataclasses.asdict(config),
                          "checkpoint_interval_s": CHECKPOINT_INTERVAL_S, "target_score": target_score},

@@ -109,6 +109,10 @@ MOMENTUM = 0.9
 INTERVAL_MARGIN = 0.1
 #: Updates of the placed field in :func:`decode_exact`.
 DECODE_CORRECTIONS = 12
+#: Display-fit lengths of :func:`linear_start`'s candidates, as multiples of its ``adam_steps``.
+START_LENGTHS = (1.0, 0.5, 2.0)
+#: Projection steps after each display fit in :func:`linear_start`.
+START_PROJECTIONS = 100
 #: Stage 3's floor of E (%) for a decoded phantom (the physical regime's is 1e−20 %):
 #: at :data:`SHADOW_BOUND` the brightest rows are near 1e−11 % and the
 #: faintest 1e−26 %, 150 dB below. 1e−36 % is an amplitude of 1e−19,
@@ -249,6 +253,121 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
                      iterations=taken, seconds=time.perf_counter() - start, clock_steps=clock_steps)
 
 
+# ------------------------------------------------------------------- start
+@dataclass
+class LinearStart:
+    """Result of :func:`linear_start`.
+
+    Attributes
+    ----------
+    field : ndarray of complex128, (Nz, Nx)
+        The best candidate's field (:class:`LinearFit`).
+    adam_steps : int
+        Display-fit steps of the best candidate.
+    candidates : list of dict
+        Per candidate tried: ``adam_steps``, ``score`` (the exact score of
+        the field's own 8-bit rendering), ``identical`` (share of pixels at
+        the target's level), ``seconds``.
+    seconds : float
+    clock_steps : int
+        Decisions the clock took: a fit or projection cut by the budget, or
+        a planned candidate left out because it would not fit.
+    threads : int
+        torch threads of the display fits.
+    """
+
+    field: np.ndarray
+    adam_steps: int
+    candidates: list
+    seconds: float
+    clock_steps: int
+    threads: int
+
+
+def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_steps: int = 300,
+                 lengths: tuple = START_LENGTHS, projections: int = START_PROJECTIONS,
+                 time_budget_s: float | None = None, threads: int | None = None, progress=None) -> LinearStart:
+    """Stage 1 of the linear regime: display fits of several lengths, each then projected; the best by score.
+
+    Each candidate is :func:`octcl.host.field.fit_field` (Adam on the
+    display, the physical regime's stage 1) for round(L·``adam_steps``)
+    steps, L in ``lengths``, then ``projections`` steps of
+    :func:`retrieve_field` from its field; the candidate whose field renders
+    with the highest ``score`` is kept. The display fit puts the dark
+    pixels near their levels (its loss is on the logarithmic display) and
+    keeps the field close to its rendering in norm; the projections then put
+    most pixels exactly at their level. Which length ends best varies from
+    scan to scan (the problem is not convex); measured on the development
+    set (``scripts/bench_linear.py``, docs/benchmarks.md) 300 steps was best
+    on 3 of 7 scans, 150 or 600 on the others by up to 2.3e−4, and 100
+    projections after a display fit ended where 300 and 600 did.
+
+    Parameters
+    ----------
+    target : ndarray
+        uint8 levels (Nz, Nx) or a float image (:func:`octcl.host.field.target_levels`).
+    score : callable
+        ``score(levels) -> float``: the exact score of 8-bit levels against the
+        target (the mean of :class:`octcl.host.loss.ExactScore`'s components).
+    config : ScannerConfig
+    adam_steps : int
+        The first candidate's display-fit steps; the others are multiples.
+    lengths : tuple of float
+        Multiples of ``adam_steps``, tried in order.
+    projections : int
+        Projection steps after each fit.
+    time_budget_s : float, optional
+        The first candidate gets all of it (half for the fit, half for the
+        projections); a later one runs only if its steps, at the first
+        candidate's measured pace, end within it.
+    threads : int, optional
+        torch threads of the fits (:func:`octcl.host.field.fit_field`).
+    progress : callable, optional
+        ``progress(step, steps)`` over all candidates' steps.
+
+    Returns
+    -------
+    LinearStart
+    """
+    from .field import fit_field
+
+    start = time.perf_counter()
+    if not (isinstance(adam_steps, int) and adam_steps >= 1):
+        raise ValueError(f"adam_steps must be a whole number ≥ 1, got {adam_steps!r}")
+    plan = [max(1, round(length * adam_steps)) for length in lengths]
+    total = sum(plan) + projections * len(plan)
+    operator = FieldOperator(config)
+    candidates, best, done, clock_steps, pace, used_threads = [], None, 0, 0, None, threads
+
+    def elapsed():
+        return time.perf_counter() - start
+
+    for steps in plan:
+        if candidates and time_budget_s is not None and elapsed() + pace * (steps + projections) > time_budget_s:
+            clock_steps += 1
+            continue
+        began = time.perf_counter()
+        share = None if time_budget_s is None or candidates else time_budget_s / 2
+        fit = fit_field(target, config, iterations=steps, time_budget_s=share, threads=threads,
+                        progress=lambda taken, planned, loss: progress and progress(done + taken, total))
+        used_threads = fit.threads
+        retrieved = retrieve_field(target, config, iterations=projections, time_budget_s=share,
+                                   initial=fit.field,
+                                   progress=lambda taken, planned: progress and progress(done + steps + taken, total))
+        done += steps + projections
+        clock_steps += fit.clock_steps + retrieved.clock_steps
+        levels = Rendering.from_a_scans(operator.apply(retrieved.field)).levels
+        candidate = {"adam_steps": fit.iterations, "score": float(score(levels)), "identical": retrieved.identical,
+                     "seconds": time.perf_counter() - began}
+        candidates.append(candidate)
+        if pace is None:
+            pace = candidate["seconds"] / (fit.iterations + retrieved.iterations)
+        if best is None or candidate["score"] > best[0]["score"]:
+            best = (candidate, retrieved.field)
+    return LinearStart(field=best[1], adam_steps=best[0]["adam_steps"], candidates=candidates,
+                       seconds=elapsed(), clock_steps=clock_steps, threads=used_threads)
+
+
 # ------------------------------------------------------------------ decode
 def row_offsets_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
     """Depth offsets o_{d,n} (µm) of the four rows of a cell in row n: (4, Nz).
@@ -367,6 +486,7 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     return Phantom(x_um, np.zeros_like(x_um), z_um, 100.0 * amplitude**2)
 
 
-__all__ = ["DECODE_CORRECTIONS", "ENERGY_FLOOR_PCT", "INTERVAL_MARGIN", "LinearFit", "MOMENTUM", "RETRIEVAL_ITERATIONS",
+__all__ = ["DECODE_CORRECTIONS", "ENERGY_FLOOR_PCT", "INTERVAL_MARGIN", "LinearFit", "LinearStart",
+           "START_LENGTHS", "START_PROJECTIONS", "linear_start", "MOMENTUM", "RETRIEVAL_ITERATIONS",
            "SHADOW_BOUND", "STEP", "decode_exact", "level_magnitude_bounds", "rendered_cells",
            "retrieve_field", "row_offsets_um", "split_on_carriers"]

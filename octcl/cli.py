@@ -184,7 +184,8 @@ def _invert_lines(result: dict) -> list[str]:
     return [f"{result['output']}: {result['scatterers']:,} scatterers, score {result['score']:.5f} "
             f"(initial_score after stages 1-2: {result['initial_score']:.5f})",
             *_format_table(result["components"]),
-            f"iterations: {result['iterations']} ({ending}); field_iterations {result['field_iterations']}; "
+            f"iterations: {result['iterations']} ({ending}); regime {result['regime']}, "
+            f"field_iterations {result['field_iterations']}; "
             f"seed {result['seed']}; threads {threads}",
             ("reproduce (the same file again): " if result["reproducible"] else
              "reproduce (this schedule, without the clock's decisions): ") + result["reproduce"],

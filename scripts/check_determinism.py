@@ -2,15 +2,16 @@
 
 End to end, in fresh processes, as a user runs it::
 
-    octcl invert TARGET -o OUT --seed S --iterations N --field-iterations M --threads T
+    octcl invert TARGET -o OUT --regime R --seed S --iterations N --field-iterations M --threads T
 
 ``--repeats`` times for each thread count T of ``--threads``, and once with
 seed S + 1 at the first thread count; then the files' SHA-256, their scores,
 and how many rows differ from the first run.
 
 With ``--stages``, each stage first, in this process, at each thread count:
-stage 1's field (``fit_field`` without a time budget); stage 2's phantom for
-seed S twice and for S + 1, and the scanner's 8-bit rendering of each; the
+stage 1's field (``fit_field`` without a time budget, then in the linear
+regime ``retrieve_field`` from it); stage 2's phantom for seed S twice and
+for S + 1 (``decode_field``; the linear regime's ``decode_exact`` takes no seed), and the scanner's 8-bit rendering of each; the
 OpenCL forward and adjoint twice on one phantom; the loss's gradient and the
 exact score of one rendering. For each it prints whether the bits repeat and,
 where they do not, the largest difference.
@@ -39,12 +40,13 @@ from pathlib import Path
 import numpy as np
 
 
-def run_cli(target: Path, output: Path, seed: int, iterations: int, field_iterations: int, threads: int,
-            time_budget: float) -> dict:
+def run_cli(target: Path, output: Path, regime: str, seed: int, iterations: int, field_iterations: int,
+            threads: int, time_budget: float) -> dict:
     """``octcl invert`` in a fresh process; its ``--json`` result, the file's digest and the wall time."""
     start = time.monotonic()
     completed = subprocess.run(
-        [sys.executable, "-m", "octcl.cli", "invert", str(target), "-o", str(output), "--seed", str(seed),
+        [sys.executable, "-m", "octcl.cli", "invert", str(target), "-o", str(output), "--regime", regime,
+         "--seed", str(seed),
          "--iterations", str(iterations), "--field-iterations", str(field_iterations), "--threads", str(threads),
          "--time-budget", str(time_budget), "--quiet", "--json"],
         capture_output=True, text=True)
@@ -78,13 +80,14 @@ def compare(label: str, first: np.ndarray, other: np.ndarray, same_inputs: bool)
     return identical or not same_inputs
 
 
-def check_stages(target_path: Path, seed: int, field_iterations: int, thread_counts: list[int]) -> bool:
+def check_stages(target_path: Path, regime: str, seed: int, field_iterations: int, thread_counts: list[int]) -> bool:
     """The stages one by one (module docstring); False if the same inputs gave different bits."""
     import torch
 
     from octcl._scanner_op import ScannerKernels
     from octcl.host.decode import decode_field
     from octcl.host.field import fit_field
+    from octcl.host.linear import decode_exact, retrieve_field
     from octcl.host.loss import DisplayLoss, ExactScore
     from octcl.host.target import read_target, target_scan
     from octcl.phantom import TARGET_ROWS
@@ -102,8 +105,17 @@ def check_stages(target_path: Path, seed: int, field_iterations: int, thread_cou
     for threads in thread_counts[1:]:
         ok &= compare(f"{first} against {threads} threads", fields[first], fields[threads], True)
 
-    print(f"stage 2: decode_field of the {first}-thread field")
-    phantoms = [decode_field(fields[first], max_scatterers=TARGET_ROWS, seed=s) for s in (seed, seed, seed + 1)]
+    if regime == "linear":
+        print("stage 1: retrieve_field from each of those fields")
+        fields = {threads: retrieve_field(scan, initial=field).field for threads, field in fields.items()}
+        ok &= compare(f"{first} thread(s), twice", fields[first], retrieve_field(scan, initial=again).field, True)
+        for threads in thread_counts[1:]:
+            ok &= compare(f"{first} against {threads} threads", fields[first], fields[threads], True)
+        print(f"stage 2: decode_exact of the {first}-thread field (no seed: S + 1 is S)")
+        phantoms = [decode_exact(fields[first]) for _ in range(3)]
+    else:
+        print(f"stage 2: decode_field of the {first}-thread field")
+        phantoms = [decode_field(fields[first], max_scatterers=TARGET_ROWS, seed=s) for s in (seed, seed, seed + 1)]
     for column in ("x_um", "y_um", "z_um", "energy_pct"):
         ok &= compare(f"seed {seed} twice: {column}", getattr(phantoms[0], column), getattr(phantoms[1], column), True)
         compare(f"seed {seed} against {seed + 1}: {column}", getattr(phantoms[0], column),
@@ -151,16 +163,22 @@ def main(argv=None) -> int:
     parser.add_argument("target", type=Path, help="target B-scan PNG")
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--iterations", type=int, default=20, help="stage-3 iterations (default 20)")
-    parser.add_argument("--field-iterations", type=int, default=1500, help="stage-1 iterations (default 1500)")
+    parser.add_argument("--regime", choices=("linear", "physical"), default="linear")
+    parser.add_argument("--field-iterations", type=int, help="stage-1 Adam steps (default: the regime's)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts (default 1 2)")
     parser.add_argument("--repeats", type=int, default=2, help="runs per thread count (default 2)")
     parser.add_argument("--time-budget", type=float, default=3600.0, help="ceiling per run (default 3600 s)")
     parser.add_argument("--stages", action="store_true", help="check each stage in this process first")
     args = parser.parse_args(argv)
 
-    ok = check_stages(args.target, args.seed, args.field_iterations, args.threads) if args.stages else True
+    if args.field_iterations is None:
+        from octcl.host.invert import FIELD_ITERATIONS
 
-    print(f"end to end: octcl invert {args.target.name} --seed S --iterations {args.iterations} "
+        args.field_iterations = FIELD_ITERATIONS[args.regime]
+    ok = check_stages(args.target, args.regime, args.seed, args.field_iterations, args.threads) \
+        if args.stages else True
+
+    print(f"end to end: octcl invert {args.target.name} --regime {args.regime} --seed S --iterations {args.iterations} "
           f"--field-iterations {args.field_iterations} --threads T, fresh processes")
     runs = [(threads, args.seed) for threads in args.threads for _ in range(args.repeats)]
     runs.append((args.threads[0], args.seed + 1))
@@ -168,8 +186,8 @@ def main(argv=None) -> int:
         files, results = [], []
         for index, (threads, seed) in enumerate(runs):
             files.append(Path(folder) / f"run{index}.txt")
-            results.append(run_cli(args.target, files[-1], seed, args.iterations, args.field_iterations, threads,
-                                   args.time_budget))
+            results.append(run_cli(args.target, files[-1], args.regime, seed, args.iterations, args.field_iterations,
+                                   threads, args.time_budget))
             result = results[-1]
             print(f"  T {threads}  seed {seed}  sha256 {result['sha256'][:16]}  score {result['score']:.9f}  "
                   f"{result['scatterers']:,} rows  {result['wall_s']:.0f} s", flush=True)
@@ -177,7 +195,7 @@ def main(argv=None) -> int:
         for index, ((threads, seed), result) in enumerate(zip(runs, results)):
             if index == 0:
                 continue
-            same_settings = seed == runs[0][1]  # the thread count changes no bit
+            same_settings = seed == runs[0][1] or args.regime == "linear"  # no bit from threads; linear: nor seed
             verdict = "identical file" if result["sha256"] == first["sha256"] else \
                 f"differs: {rows_differing(files[0], files[index])}, score Δ {result['score'] - first['score']:+.1e}"
             print(f"  T {threads} seed {seed} against T {runs[0][0]} seed {runs[0][1]}: {verdict}")

@@ -26,7 +26,7 @@ JSON_KEYS = {
     "score": {"ref", "pred", *COMPONENT_KEYS, "seconds"},
     "score --refs": {"refs", "preds", "scans", "medians", "score", "csv", "seconds"},
     "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
-               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "stop_reason", "falls", "seed", "field_iterations",
+               "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "stop_reason", "falls", "seed", "regime", "field_iterations",
                "fixed_schedule", "threads", "reproduce", "reproducible", "report"},
     "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "octcl_version", "time_budget_s",
                          "seed", "options", "cluster", "wall_s"},
@@ -131,8 +131,11 @@ def test_render_numpy_backend_and_truncate(tmp_path, capsys):
     (["invert", "--targets", "{tmp}", "--out", "{tmp}/out", "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"],
      "workers and threads per worker are the cluster's own"),
     (["invert", "--targets", "{tmp}", "--out", "{tmp}/out", "--tls-cert", "c.pem"], "TLS needs all three"),
-    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--iterations", "401"],
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--iterations", "111"],
+     "iterations must be a whole number in [0, 110]"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--regime", "physical", "--iterations", "401"],
      "iterations must be a whole number in [0, 400]"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--regime", "tissue"], "invalid choice: 'tissue'"),
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--threads", "0"], "threads must be a whole number ≥ 1"),
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--target-score", "1.5"], "target_score must be a score in (0, 1]"),
     # Images that claim more pixels than octcl reads are refused by their header, before decoding.
@@ -262,9 +265,10 @@ def test_invert_summary_says_where_the_main_run_fell():
     components = {key: 0.99 for key in COMPONENT_KEYS}
     result = {"output": "p.txt", "scatterers": 10, "score": 0.99, "initial_score": 0.98, "components": components,
               "iterations": 60, "fixed_schedule": True, "stop_reason": "schedule", "falls": [], "field_iterations": 5,
-              "seed": 0, "threads": 1, "reproduce": "--seed 0", "reproducible": True, "checkpoints": 2,
+              "regime": "linear", "seed": 0, "threads": 1, "reproduce": "--seed 0", "reproducible": True, "checkpoints": 2,
               "peak_memory_mib": 100.0, "seconds": {"total": 9.0}}
-    assert "iterations: 60 (fixed schedule, schedule completed); field_iterations 5" in "\n".join(_invert_lines(result))
+    assert "iterations: 60 (fixed schedule, schedule completed); regime linear, field_iterations 5" in \
+        "\n".join(_invert_lines(result))
     result["falls"] = [20, 40]
     assert "(fixed schedule, schedule completed; fell after steps 20, 40 and went back to the best phantom)" in \
         "\n".join(_invert_lines(result))
@@ -341,14 +345,18 @@ def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, official_
     first = results[0]
     assert first["fixed_schedule"] and not first["stopped_by_deadline"]
     assert (first["iterations"], first["field_iterations"], first["threads"]) == (10, 20, 1)
-    assert first["reproduce"] == "--seed 5 --iterations 10 --field-iterations 20 --threads 1"
-    # The target as an array (what a batch runner sends a worker), with
-    # another seed: other elevations from stage 2 on, so a few stage-3 steps
-    # show it.
-    result = octcl.invert(read_target(target), tmp_path / "c.txt", seed=6, iterations=2, field_iterations=20,
-                          name="layers")
-    assert result.target == "layers" and result.iterations == 2
-    assert (tmp_path / "c.txt").read_bytes() != (tmp_path / "a.txt").read_bytes()
+    assert first["reproduce"] == "--regime linear --seed 5 --iterations 10 --field-iterations 20 --threads 1"
+    # The target as an array (what a batch runner sends a worker): in the
+    # linear regime nothing is drawn at random, so another seed gives the
+    # same file; in the physical regime it draws other elevations in stage 2.
+    array = read_target(target)
+    same = octcl.invert(array, tmp_path / "c.txt", seed=6, iterations=10, field_iterations=20, name="layers")
+    assert same.target == "layers" and same.iterations == 10
+    assert (tmp_path / "c.txt").read_bytes() == (tmp_path / "a.txt").read_bytes()
+    physical = [octcl.invert(array, tmp_path / f"p{seed}.txt", seed=seed, iterations=2, field_iterations=20,
+                             regime="physical") for seed in (5, 6)]
+    assert physical[0].reproduce.startswith("--regime physical --seed 5 --iterations 2")
+    assert (tmp_path / "p5.txt").read_bytes() != (tmp_path / "p6.txt").read_bytes()
 
 
 def test_invert_fixed_schedule_past_its_budget_fails_loudly(tmp_path, capsys, official_data):

@@ -146,9 +146,9 @@ def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):
 def test_a_deadline_run_that_took_no_decision_from_the_clock_repeats(tmp_path, layers_path):
     """Deadline mode, threads timed or given: the same file, and ``reproduce``'s fixed schedule writes it too."""
     schedule = RefineSchedule(phases=(Phase(6, 0.002, 0.02),), restarts=(), score_every=3)
-    timed = invert(layers_path, tmp_path / "timed.txt", time_budget_s=3000, field_iterations=200, schedule=schedule)
+    timed = invert(layers_path, tmp_path / "timed.txt", time_budget_s=3000, field_iterations=40, schedule=schedule)
     assert timed.reproducible and timed.threads is None and timed.stop_reason == "schedule"
-    two = invert(layers_path, tmp_path / "two.txt", time_budget_s=3000, field_iterations=200, schedule=schedule,
+    two = invert(layers_path, tmp_path / "two.txt", time_budget_s=3000, field_iterations=40, schedule=schedule,
                  threads=2)
     assert two.reproducible and two.reproduce == timed.reproduce.replace("--threads 1", "--threads 2")
     fixed = invert(layers_path, tmp_path / "fixed.txt", time_budget_s=3000, iterations=timed.iterations,

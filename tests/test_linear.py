@@ -12,7 +12,7 @@ from octcl._io import GREY_LUT
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.host.field import FieldOperator
 from octcl.host.linear import (INTERVAL_MARGIN, SHADOW_BOUND, _carriers, decode_exact, level_magnitude_bounds,
-                               rendered_cells, retrieve_field, row_offsets_um, split_on_carriers)
+                               linear_start, rendered_cells, retrieve_field, row_offsets_um, split_on_carriers)
 from octcl.phantom import Phantom
 from octcl.render import Rendering
 
@@ -189,3 +189,29 @@ def test_energy_floor_is_a_normal_float32_amplitude():
 
     amplitude = math.sqrt(ENERGY_FLOOR_PCT / 100)
     assert amplitude > np.finfo(np.float32).tiny
+
+
+def test_linear_start_keeps_the_best_scoring_candidate():
+    levels = _scanner_made_target(2)
+    scores = iter([0.5, 0.9, 0.7])  # the second candidate (half the steps) scores best
+    calls = []
+    found = linear_start(levels, lambda rendered: next(scores), adam_steps=10, lengths=(1.0, 0.5, 2.0),
+                         projections=20, threads=1, progress=lambda step, steps: calls.append((step, steps)))
+    assert [c["adam_steps"] for c in found.candidates] == [10, 5, 20]
+    assert [c["score"] for c in found.candidates] == [0.5, 0.9, 0.7]
+    assert found.adam_steps == 5 and found.clock_steps == 0 and found.threads == 1
+    assert calls[-1] == (35 + 60, 35 + 60)
+    # The chosen field is the second candidate's, as linear_start made it.
+    from octcl.host.field import fit_field
+
+    again = retrieve_field(levels, iterations=20, initial=fit_field(levels, iterations=5, time_budget_s=None,
+                                                                    threads=1).field)
+    np.testing.assert_array_equal(found.field, again.field)
+
+
+def test_linear_start_leaves_out_candidates_the_budget_cannot_hold():
+    levels = _scanner_made_target(2)
+    found = linear_start(levels, lambda rendered: float(np.mean(rendered == levels)), adam_steps=400,
+                         time_budget_s=0.5, threads=1)
+    assert len(found.candidates) == 1 and found.clock_steps >= 1
+    assert found.candidates[0]["adam_steps"] < 400  # the first fit was cut by its share of the budget
