@@ -344,7 +344,7 @@ class _CheckpointWriter:
 
 
 def final_reserve_s(time_budget_s: float) -> float:
-    """Seconds of the budget stage 3 leaves for the last write: :data:`FINAL_RESERVE_S`, or a share of a short budget."""
+    """Seconds of the budget that stage 3 leaves for the last write (:data:`FINAL_RESERVE_S`, less for a short one)."""
     return min(FINAL_RESERVE_S, FINAL_RESERVE_FRACTION * time_budget_s)
 
 
@@ -375,7 +375,8 @@ class _Start:
 
 
 def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell, exact_score) -> _Start:
-    """Stages 1–2 of the published pipeline (:func:`~octcl.host.field.fit_field`, :func:`~octcl.host.decode.decode_field`)."""
+    """Stages 1–2 of the published pipeline: :func:`~octcl.host.field.fit_field`, then
+    :func:`~octcl.host.decode.decode_field`."""
     from .decode import decode_field
     from .field import fit_field
 
@@ -392,8 +393,8 @@ def _linear_start(scan, config, schedule, iterations, budget_s, threads, seed, s
     """Stages 1–2 in the linear regime (:mod:`octcl.host.linear`); draws nothing at random.
 
     Stage 1 is :func:`~octcl.host.linear.linear_start`, display fits of
-    ``iterations`` steps and multiples, each followed by projections, judged
-    by the exact score; stage 2 :func:`~octcl.host.linear.decode_exact`.
+    ``iterations`` and half as many steps, each followed by projections,
+    judged by the exact score; stage 2 :func:`~octcl.host.linear.decode_exact`.
     """
     from .linear import ENERGY_FLOOR_PCT, decode_exact, linear_start
 

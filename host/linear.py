@@ -45,10 +45,12 @@ tenth of their width in dB, at each end) so that the iterate lands inside
 a level rather than on its edge. The start is the regularised inverse of
 the de-logged target with zero phase, as in stage 1 of the physical regime.
 
-Measured on the development set (``scripts/bench_invert.py``,
+From the regularised inverse (``python scripts/bench_linear.py --skin 3``,
 docs/benchmarks.md; the 8-component score of the field's own 8-bit
-rendering) the score rises within 100 iterations and changes by less than
-1e−4 after 300 (:data:`RETRIEVAL_ITERATIONS`), 2–3 s on two cores.
+rendering) the score changes by up to 9.7e−4 between 100 and 300
+iterations (:data:`RETRIEVAL_ITERATIONS`) and by at most 1.6e−5 after; from
+a display fit (:func:`linear_start`) by at most 2e−6 between 100
+(:data:`START_PROJECTIONS`) and 600. A projection costs about 8 ms on two cores.
 
 Stage 2, :func:`decode_exact`. A scatterer at depth z = z_n + o (z_n the
 cell depth of :func:`octcl.host.field.cell_depths_um`) adds
@@ -109,8 +111,10 @@ MOMENTUM = 0.9
 INTERVAL_MARGIN = 0.1
 #: Updates of the placed field in :func:`decode_exact`.
 DECODE_CORRECTIONS = 12
-#: Display-fit lengths of :func:`linear_start`'s candidates, as multiples of its ``adam_steps``.
-START_LENGTHS = (1.0, 0.5, 2.0)
+#: Display-fit lengths of :func:`linear_start`'s candidates, as multiples of its
+#: ``adam_steps``. A third at 2× won on one scan of seven by 8e−6 and cost
+#: about 5 s (:func:`linear_start`).
+START_LENGTHS = (1.0, 0.5)
 #: Projection steps after each display fit in :func:`linear_start`.
 START_PROJECTIONS = 100
 #: Stage 3's floor of E (%) for a decoded phantom (the physical regime's is 1e−20 %):
@@ -295,12 +299,17 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_ste
     :func:`retrieve_field` from its field; the candidate whose field renders
     with the highest ``score`` is kept. The display fit puts the dark
     pixels near their levels (its loss is on the logarithmic display) and
-    keeps the field close to its rendering in norm; the projections then put
+    keeps the field close to its rendering in norm (‖F‖/‖A(F)‖ 1.1–2.3
+    against 6.2–6.6 from the regularised inverse); the projections then put
     most pixels exactly at their level. Which length ends best varies from
-    scan to scan (the problem is not convex); measured on the development
-    set (``scripts/bench_linear.py``, docs/benchmarks.md) 300 steps was best
-    on 3 of 7 scans, 150 or 600 on the others by up to 2.3e−4, and 100
-    projections after a display fit ended where 300 and 600 did.
+    scan to scan (the problem is not convex). Measured on the development
+    set (``python scripts/bench_linear.py --skin 3``, docs/benchmarks.md,
+    the field's own score): of 150, 300 and 600 steps, 300 was best on 4 of
+    the 7 scans, 150 on 2 (by 2.3e−4 on Uniform B and 7e−5 on skin_2) and
+    600 on orange (by 8e−6), hence :data:`START_LENGTHS` 300 and 150; 600
+    projections alone, from the regularised inverse, scored 0.99913–0.99987,
+    2.5e−5 to 7.4e−4 below the best of the three on every scan. 100
+    projections after a display fit ended within 2e−6 of 600.
 
     Parameters
     ----------

@@ -265,7 +265,8 @@ def test_invert_summary_says_where_the_main_run_fell():
     components = {key: 0.99 for key in COMPONENT_KEYS}
     result = {"output": "p.txt", "scatterers": 10, "score": 0.99, "initial_score": 0.98, "components": components,
               "iterations": 60, "fixed_schedule": True, "stop_reason": "schedule", "falls": [], "field_iterations": 5,
-              "regime": "linear", "seed": 0, "threads": 1, "reproduce": "--seed 0", "reproducible": True, "checkpoints": 2,
+              "regime": "linear", "seed": 0, "threads": 1, "reproduce": "--seed 0", "reproducible": True,
+              "checkpoints": 2,
               "peak_memory_mib": 100.0, "seconds": {"total": 9.0}}
     assert "iterations: 60 (fixed schedule, schedule completed); regime linear, field_iterations 5" in \
         "\n".join(_invert_lines(result))
