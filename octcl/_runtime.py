@@ -41,6 +41,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import tempfile
 import warnings
 from dataclasses import dataclass
@@ -153,6 +154,7 @@ def register_runtimes() -> Path | None:
     return folder
 
 
+@functools.lru_cache(maxsize=None)
 def _cl():
     register_runtimes()
     try:
@@ -181,16 +183,18 @@ def list_devices() -> list[tuple[str, object]]:
 
 
 def implementation(device) -> str:
-    """The OpenCL implementation behind a device: ``pocl``, ``intel`` (CPU runtime), ``oclgrind``, or
-    the first word of its platform's name in lower case (``nvidia``, ``amd``, ``rusticl``, ...)."""
+    """The OpenCL implementation behind a device: ``pocl``, ``intel`` (the CPU runtime), ``intel-gpu``,
+    ``oclgrind``, or the first word of its platform's name in lower case (``nvidia``, ``amd``, ``rusticl``)."""
     name = device.platform.name.strip()
     if name == "Portable Computing Language":
         return "pocl"
-    if name == "Intel(R) OpenCL":  # the CPU runtime; Intel's GPU driver is "Intel(R) OpenCL Graphics"
+    if name == "Intel(R) OpenCL":
         return "intel"
+    if name == "Intel(R) OpenCL Graphics":
+        return "intel-gpu"
     if name == "Oclgrind":
         return "oclgrind"
-    return (name.split() or ["unknown"])[0].lower()
+    return re.sub(r"\(.*?\)", "", (name.split() or ["unknown"])[0]).lower()
 
 
 def describe(device) -> str:

@@ -13,6 +13,8 @@ so 1e−5 is asserted; float64 kernels at ~1e−8 (the spreading kernel's own
 error), so 1e−7 is asserted.
 """
 
+import hashlib
+
 import numpy as np
 import pytest
 from conftest import OCLGRIND_LOG, implementation_device
@@ -51,6 +53,21 @@ def kernels64(cpu_device, variant):
     return ScannerKernels(NARROW, KernelSettings(double=True, variant=variant), device=cpu_device)
 
 
+_REFERENCES = {}
+
+
+def reference(phantom, config):
+    """The float64 reference rendering, made once per phantom and scanner: every implementation
+    and variant is compared with the same one (the reference takes most of these tests' time)."""
+    digest = hashlib.sha256(repr(config).encode())
+    for name in ("x_um", "y_um", "z_um", "energy_pct"):
+        digest.update(np.ascontiguousarray(getattr(phantom, name), dtype=np.float64).tobytes())
+    key = digest.hexdigest()
+    if key not in _REFERENCES:
+        _REFERENCES[key] = render(phantom, config, backend="numpy")
+    return _REFERENCES[key]
+
+
 def kernel_rendering(kernels, phantom, for_adjoint=False):
     with np.errstate(divide="ignore"):  # E = 0 → u = −∞, a = 0
         log_energy = np.log(phantom.energy_pct)
@@ -61,7 +78,7 @@ def kernel_rendering(kernels, phantom, for_adjoint=False):
 def compare(kernels, phantom, tolerance):
     """Render with kernels and reference; assert agreement and finite gradients."""
     ours = kernel_rendering(kernels, phantom, for_adjoint=True)
-    theirs = render(phantom, kernels.config, backend="numpy")
+    theirs = reference(phantom, kernels.config)
     assert np.isfinite(ours.a_scans).all() and np.isfinite(ours.display).all()
     scale = np.abs(theirs.a_scans).max()
     error = np.abs(ours.a_scans - theirs.a_scans).max() / scale if scale else np.abs(ours.a_scans).max()
@@ -115,7 +132,7 @@ def test_phase_error_below_a_milliradian_up_to_the_bottom(kernels32):
     for z_um in (0.3, 700.123456, 1535.987654, 1536.0):
         phantom = Phantom([0.0], [0.0], [z_um], [1.0])
         ours = kernel_rendering(kernels32, phantom).a_scans[:, NARROW.a_scans // 2]
-        theirs = render(phantom, NARROW, backend="numpy").a_scans[:, NARROW.a_scans // 2]
+        theirs = reference(phantom, NARROW).a_scans[:, NARROW.a_scans // 2]
         peak = np.argmax(np.abs(theirs))
         assert abs(np.angle(ours[peak] / theirs[peak])) < 1e-3
 
@@ -234,7 +251,7 @@ def test_gradients_match_reference_finite_differences(energy, kernels32):
                 else:
                     energy_pct[j] = np.exp(log_energy[j] + sign * step)
                 shifted = Phantom(phantom.x_um, phantom.y_um, z_um, energy_pct)
-                losses.append(smooth_loss(render(shifted, NARROW, backend="numpy"), target, weight))
+                losses.append(smooth_loss(reference(shifted, NARROW), target, weight))
             finite_difference = (losses[0] - losses[1]) / (2 * step)
             assert abs(grad[j] - finite_difference) <= 1e-3 * abs(finite_difference), (
                 f"∂L/∂{name}[{j}]: adjoint {grad[j]:.6e}, finite difference {finite_difference:.6e}")
@@ -256,8 +273,8 @@ def test_mirror_gradients_are_finite_and_exact(kernels64):
     for sign in (1, -1):
         energy_pct = phantom.energy_pct.copy()
         energy_pct[j] *= np.exp(sign * 1e-5)
-        losses.append(smooth_loss(render(Phantom(phantom.x_um, phantom.y_um, phantom.z_um, energy_pct),
-                                         NARROW, backend="numpy"), target, weight))
+        losses.append(smooth_loss(reference(Phantom(phantom.x_um, phantom.y_um, phantom.z_um, energy_pct), NARROW),
+                                  target, weight))
     finite_difference = (losses[0] - losses[1]) / 2e-5
     assert abs(grad_u[j] - finite_difference) <= 1e-3 * abs(finite_difference)
 
@@ -313,7 +330,7 @@ def _uniform_scene(energy_pct, count=300_000 * NARROW.a_scans // 512, seed=13):
 
 def _assert_renders_as_reference(kernels, phantom):
     ours = kernel_rendering(kernels, phantom)
-    theirs = render(phantom, kernels.config, backend="numpy")
+    theirs = reference(phantom, kernels.config)
     index_error = np.abs(ref.colour_index(ours.display).astype(int) - ref.colour_index(theirs.display))
     identical = np.mean(ours.levels == theirs.levels)
     assert identical >= 0.999 and index_error.max() <= 1, f"{identical:.5%} identical, max {index_error.max()}"
@@ -359,7 +376,7 @@ def test_gradients_of_a_scaled_phantom_match_finite_differences(kernels32):
                 else:
                     energy_pct[j] = np.exp(log_energy[j] + sign * step)
                 shifted = Phantom(phantom.x_um, phantom.y_um, z_um, energy_pct)
-                losses.append(smooth_loss(render(shifted, NARROW, backend="numpy"), target, weight))
+                losses.append(smooth_loss(reference(shifted, NARROW), target, weight))
             finite_difference = (losses[0] - losses[1]) / (2 * step)
             assert abs(grad[j] - finite_difference) <= 1e-3 * abs(finite_difference), (
                 f"∂L/∂{name}[{j}]: adjoint {grad[j]:.6e}, finite difference {finite_difference:.6e}")
@@ -498,7 +515,7 @@ def test_kernels_under_oclgrind_report_nothing_and_match_the_reference(oclgrind_
             z_um = random_scene.z_um.copy()
             z_um[j] += sign * 2e-5
             shifted = Phantom(random_scene.x_um, random_scene.y_um, z_um, random_scene.energy_pct)
-            losses.append(smooth_loss(render(shifted, SMALL, backend="numpy"), target, 1.0))
+            losses.append(smooth_loss(reference(shifted, SMALL), target, 1.0))
         finite_difference = (losses[0] - losses[1]) / 4e-5
         assert abs(grad_z[j] - finite_difference) <= 1e-3 * abs(finite_difference)
     log = OCLGRIND_LOG.read_bytes()[start:].decode(errors="replace") if OCLGRIND_LOG.exists() else ""
