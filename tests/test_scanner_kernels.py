@@ -1,9 +1,9 @@
 """OpenCL scanner kernels against the float64 reference, including stiff and extreme scenes.
 
 Every test runs both kernel variants (one work-item per A-scan, one
-work-group per A-scan); those on the narrow scanner (``kernels32``,
-``kernels64``) run them on each CPU implementation present (PoCL, Intel's
-runtime: the test id names it), and "Under Oclgrind" runs both variants and
+work-group per A-scan); those on the narrow scanner run them on each CPU
+implementation present (PoCL, Intel's runtime: the test id names it), the
+full-size scenes on the device octcl picks, and "Under Oclgrind" runs both variants and
 both precisions on a small scene in the Oclgrind simulator, which checks
 every memory access, data races and the API calls. Agreement is measured on the
 complex A-scans: max |A_kernel − A_ref| relative to max |A_ref|. Float32
@@ -104,15 +104,16 @@ def test_random_scene_matches_reference(precision, tolerance, kernels32, kernels
 
 
 @pytest.mark.parametrize("double, tolerance", [(False, 1e-5), (True, 1e-7)])
-def test_the_widest_spreading_builds_and_matches_the_reference(double, tolerance):
+def test_the_widest_spreading_builds_and_matches_the_reference(double, tolerance, cpu_device):
     """W = 16: the work-item kernels compute 16 weights in 256-bit pieces (8 floats, 4 doubles),
     the widest that PoCL's LLVM compiles the vector builtins for without AVX-512."""
-    kernels = ScannerKernels(NARROW, KernelSettings(spread_width=16, double=double, variant="work-item"))
+    kernels = ScannerKernels(NARROW, KernelSettings(spread_width=16, double=double, variant="work-item"),
+                             device=cpu_device)
     compare(kernels, random_phantom(2000, np.random.default_rng(4)), tolerance)
 
 
 @pytest.mark.parametrize("double, tolerance", [(False, 1e-5), (True, 1e-7)])
-def test_bins_that_lanes_do_not_divide(double, tolerance):
+def test_bins_that_lanes_do_not_divide(double, tolerance, cpu_device):
     """A 13 µm beam makes bins of P = 10 A-scans, and 64 A-scans end in a bin of 4: the work-item
     kernels' last lanes of a bin (10 = 8 + 2 floats, 4 + 4 + 2 doubles) and of the B-scan stay idle,
     and forward and adjoint still agree with the reference and with the work-group variant."""
@@ -120,7 +121,7 @@ def test_bins_that_lanes_do_not_divide(double, tolerance):
     phantom = random_phantom(2000, np.random.default_rng(5), half_width_um=190.0)
     gradients = []
     for variant in VARIANTS:
-        kernels = ScannerKernels(config, KernelSettings(double=double, variant=variant))
+        kernels = ScannerKernels(config, KernelSettings(double=double, variant=variant), device=cpu_device)
         assert kernels.ascans_per_bin == 10
         gradients.append(compare(kernels, phantom, tolerance)[2:])
     for item, group in zip(*gradients):
@@ -383,12 +384,12 @@ def test_gradients_of_a_scaled_phantom_match_finite_differences(kernels32):
 
 
 # ------------------------------------------------------------------ variants
-def test_variants_agree_and_repeat_bit_for_bit():
+def test_variants_agree_and_repeat_bit_for_bit(cpu_device):
     """Both variants give the same A-scans and gradients to float32 rounding; each repeats exactly."""
     phantom = random_phantom(3000, np.random.default_rng(16), energy=(1.0, 40.0))
     results = {}
     for variant in VARIANTS:
-        kernels = ScannerKernels(NARROW, KernelSettings(variant=variant))
+        kernels = ScannerKernels(NARROW, KernelSettings(variant=variant), device=cpu_device)
         runs = []
         for _ in range(2):
             rendering = kernel_rendering(kernels, phantom, for_adjoint=True)
