@@ -64,8 +64,6 @@ CPU_ORDER = ("intel", "pocl")
 SIMULATORS = ("oclgrind",)
 #: The program a device must build to be a candidate: any kernel fails on a compiler that cannot target the CPU.
 PROBE_SOURCE = "__kernel void probe(__global float *x) { x[get_global_id(0)] *= 2.0f; }"
-#: Compiler options of the probe (none: the kernels' own options are defines).
-PROBE_OPTIONS: tuple[str, ...] = ()
 
 _FIX = ("fix: pip install 'octcl[intel]' (Intel's OpenCL CPU runtime, any x86-64 CPU, no root; "
         "scripts/setup.sh installs it), or install a working OpenCL driver (the distribution's "
@@ -226,8 +224,7 @@ class Probe:
 
 
 def _probe_key(device) -> str:
-    identity = [device.platform.name, device.platform.version, device.name, device.driver_version,
-                PROBE_SOURCE, *PROBE_OPTIONS]
+    identity = [device.platform.name, device.platform.version, device.name, device.driver_version, PROBE_SOURCE]
     return hashlib.sha256("\0".join(identity).encode()).hexdigest()[:24]
 
 
@@ -241,7 +238,7 @@ def _probe_in_process(key: str, device) -> Probe:
     cl = _cl()
     try:
         context, _ = context_for(device)
-        _quiet_build(cl.Program(context, PROBE_SOURCE), list(PROBE_OPTIONS), device)
+        _quiet_build(cl.Program(context, PROBE_SOURCE), [], device)
         result = Probe(True)
     except cl.Error as exc:
         result = Probe(False, str(exc))
