@@ -63,7 +63,8 @@ CPU_ORDER = ("intel", "pocl")
 #: Implementations octcl uses only when named: a simulator checks kernels, it does not run them for users.
 SIMULATORS = ("oclgrind",)
 #: The program a device must build to be a candidate: any kernel fails on a compiler that cannot target the CPU.
-PROBE_SOURCE = "__kernel void probe(__global float *x) { x[get_global_id(0)] *= 2.0f; }"
+PROBE_SOURCE = ("__kernel void probe(__global float *octcl_probe_data) "
+                "{ octcl_probe_data[get_global_id(0)] *= 2.0f; }")
 
 _FIX = ("fix: pip install 'octcl[intel]' (Intel's OpenCL CPU runtime, any x86-64 CPU, no root; "
         "scripts/setup.sh installs it), or install a working OpenCL driver (the distribution's "

@@ -30,13 +30,13 @@ def fresh_probes(tmp_path, monkeypatch):
 
 
 def break_builds_of(monkeypatch, broken: set[str]):
-    """Builds on devices of the implementations in ``broken`` fail in their compiler: ``x`` is
-    defined as ``)``, a syntax error in the probe program."""
+    """Builds on devices of the implementations in ``broken`` fail in their compiler: the probe
+    program's ``octcl_probe_data`` is defined as ``)``, a syntax error there."""
     real_build = _runtime._quiet_build
 
     def build_breaking(program, options, device):
         if implementation(device) in broken:
-            options = [*options, "-Dx=)"]
+            options = [*options, "-Doctcl_probe_data=)"]
         return real_build(program, options, device)
 
     monkeypatch.setattr(_runtime, "_quiet_build", build_breaking)
