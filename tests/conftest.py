@@ -20,6 +20,23 @@ IMPLEMENTATION_SOURCES = {
 }
 
 
+def pytest_terminal_summary(terminalreporter):
+    """One line of the kernel tests run on each OpenCL implementation (the test id names it), so
+    that a CI log shows which implementations the kernels were proven on."""
+    import re
+
+    counts = {name: {} for name in IMPLEMENTATION_SOURCES}
+    for outcome in ("passed", "failed", "skipped"):
+        for report in terminalreporter.stats.get(outcome, []):
+            for name, tally in counts.items():
+                if re.search(rf"[\[-]{name}[\]-]", report.nodeid) and (outcome != "passed" or report.when == "call"):
+                    tally[outcome] = tally.get(outcome, 0) + 1
+    if any(counts.values()):
+        terminalreporter.write_line("kernel tests per OpenCL implementation: " + "; ".join(
+            f"{name} " + (", ".join(f"{n} {outcome}" for outcome, n in tally.items()) or "none")
+            for name, tally in counts.items()))
+
+
 def implementation_device(name: str):
     """The first device of the OpenCL implementation ``name``; skips, with the reason, where it
     is not installed or cannot build on this machine."""
@@ -27,7 +44,7 @@ def implementation_device(name: str):
 
     devices = [device for _, device in list_devices() if implementation(device) == name]
     if not devices:
-        pytest.skip(f"{name} is not installed: {IMPLEMENTATION_SOURCES[name]}")
+        pytest.skip(f"no {name} device found: {IMPLEMENTATION_SOURCES[name]}")
     result = probe(devices[0])
     if not result.builds:
         pytest.skip(f"{name} cannot build on this machine: {result.error}")
