@@ -159,7 +159,10 @@ static inline complex_t cconj_mul(complex_t a, complex_t b) { /* conj(a)·b */
  * kernels' vector lanes. */
 /* exp(−d²/w0²)·mantissa: the beam amplitude without its binary exponent. */
 #define beam_mantissa(p, d2, mantissa) (exp(-(d2) * (p).inv_w0_sq) * (mantissa))
-/* t = min(b², 1), b = beam_mantissa·2^exponent: the absolute shadowing energy. */
+/* t = min(b², 1), b = beam_mantissa·2^exponent: the absolute shadowing energy.
+ * For lanes the exponent comes as a lane_index_t, not as one int: OpenCL's
+ * ldexp(floatn, int) is legal, but Oclgrind 21.10 reads lanes 1 … n − 1 of
+ * that scalar exponent from past its end (docs/scanner.md, "Implementations"). */
 #define shadow_energy(beam, exponent) fmin(ldexp((beam) * (beam), 2 * (exponent)), (real)1)
 
 /* ψ(t) = exp(β·(sqrt(1 − t²) − 1)) at t = (offset + k)·2/W, offset = first − p. */
@@ -409,7 +412,7 @@ __kernel void render_forward(const ScannerParams p,
             }
         }
         /* T ← dw_mul(T, one_minus(t)) lane-wise */
-        const lanes_t energy = shadow_energy(beam, e.exponent);
+        const lanes_t energy = shadow_energy(beam, (lane_index_t)e.exponent);
         const lanes_t factor = 1 - energy, factor_lo = (1 - factor) - energy;
         const lanes_t product = transmission * factor;
         const lanes_t error = fma(transmission, factor, -product)
@@ -496,7 +499,7 @@ __kernel void render_adjoint(const ScannerParams p,
         }
         if (!any(reach)) continue;
         const lanes_t beam = beam_mantissa(p, d2, e.mantissa);
-        const lanes_t energy = shadow_energy(beam, e.exponent);
+        const lanes_t energy = shadow_energy(beam, (lane_index_t)e.exponent);
         lanes_t grad_u = 0, grad_z = 0, grad_transmission = 0;
         const lane_mask_t contributing = reach & contributes_lanes(e, b.ascan);
         if (any(contributing)) {

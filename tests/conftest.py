@@ -1,8 +1,54 @@
 """Shared pytest fixtures and options."""
 
+import os
+import tempfile
 from pathlib import Path
 
 import pytest
+
+# Oclgrind reads its checks from the environment when its platform starts, at the first platform
+# query of the process: data races and OpenCL API misuse on, every report to a log the kernel tests
+# read (tests/test_scanner_kernels.py, "Under Oclgrind"). Out-of-bounds accesses are always checked.
+OCLGRIND_LOG = Path(tempfile.mkdtemp(prefix="octcl-oclgrind-")) / "oclgrind.log"
+os.environ.update(OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", OCLGRIND_LOG=str(OCLGRIND_LOG))
+
+#: How to get each OpenCL implementation the kernel tests run on, for the reason of a skip.
+IMPLEMENTATION_SOURCES = {
+    "pocl": "pip install pocl-binary-distribution (installed with octcl)",
+    "intel": "pip install 'octcl[intel]' (x86-64 Linux; scripts/setup.sh installs it)",
+    "oclgrind": "apt-get install oclgrind (Debian, Ubuntu)",
+}
+
+
+def pytest_terminal_summary(terminalreporter):
+    """One line of the kernel tests run on each OpenCL implementation (the test id names it), so
+    that a CI log shows which implementations the kernels were proven on."""
+    import re
+
+    counts = {name: {} for name in IMPLEMENTATION_SOURCES}
+    for outcome in ("passed", "failed", "skipped"):
+        for report in terminalreporter.stats.get(outcome, []):
+            for name, tally in counts.items():
+                if re.search(rf"[\[-]{name}[\]-]", report.nodeid) and (outcome != "passed" or report.when == "call"):
+                    tally[outcome] = tally.get(outcome, 0) + 1
+    if any(counts.values()):
+        terminalreporter.write_line("kernel tests per OpenCL implementation: " + "; ".join(
+            f"{name} " + (", ".join(f"{n} {outcome}" for outcome, n in tally.items()) or "none")
+            for name, tally in counts.items()))
+
+
+def implementation_device(name: str):
+    """The first device of the OpenCL implementation ``name``; skips, with the reason, where it
+    is not installed or cannot build on this machine."""
+    from octcl._runtime import implementation, list_devices, probe
+
+    devices = [device for _, device in list_devices() if implementation(device) == name]
+    if not devices:
+        pytest.skip(f"no {name} device found: {IMPLEMENTATION_SOURCES[name]}")
+    result = probe(devices[0])
+    if not result.builds:
+        pytest.skip(f"{name} cannot build on this machine: {result.error}")
+    return devices[0]
 
 #: Factor by which ``--fuzz-long`` alone multiplies the fuzz tests' example budgets.
 FUZZ_LONG_FACTOR = 50

@@ -31,7 +31,7 @@ JSON_KEYS = {
     "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "octcl_version", "time_budget_s",
                          "seed", "options", "cluster", "wall_s"},
     "weights": {"weights", "ok"},
-    "devices": {"id", "device", "default"},
+    "devices": {"id", "device", "builds", "build_error", "default", "reason"},
 }
 
 
