@@ -11,7 +11,8 @@ and how many rows differ from the first run.
 With ``--stages``, each stage first, in this process, at each thread count:
 stage 1's field (``fit_field`` without a time budget, then in the linear
 regime ``retrieve_field`` from it); stage 2's phantom for seed S twice and
-for S + 1 (``decode_field``; the linear regime's ``decode_exact`` takes no seed), and the scanner's 8-bit rendering of each; the
+for S + 1 (``decode_field``; the linear regime's ``decode_exact`` takes no
+seed), and the scanner's 8-bit rendering of each; the
 OpenCL forward and adjoint twice on one phantom; the loss's gradient and the
 exact score of one rendering. For each it prints whether the bits repeat and,
 where they do not, the largest difference.
