@@ -9,10 +9,11 @@
 
 Stages 1–2 come in two regimes (:data:`REGIMES`):
 
-- ``linear`` (the default), :mod:`octcl.host.linear`: projections onto the
-  target's level intervals find the field in 2–3 s, and an exact decode
-  puts two rows in every cell at energies so small (E ≲ 1e−10 %) that
-  shadowing changes no display level. The phantom is a numerical device:
+- ``linear`` (the default), :mod:`octcl.host.linear`: two short display
+  fits, each followed by projections onto the target's level intervals and
+  judged by the exact score, find the field in about 8 s, and an exact
+  decode puts two rows in every cell at energies so small (E ≲ 1e−10 %)
+  that shadowing changes no display level. The phantom is a numerical device:
   it renders as the target, but its energies are not tissue-like.
 - ``physical``, the published pipeline: :func:`octcl.host.field.fit_field`
   (1500 Adam steps on the display, 10–12 s) and
@@ -21,7 +22,7 @@ Stages 1–2 come in two regimes (:data:`REGIMES`):
   scoring, kept to reproduce the published method and for phantoms
   scaled like tissue.
 
-Measured on the development set: docs/benchmarks.md ("Linear regime").
+Measured on the development set: docs/benchmarks.md ("the linear regime").
 
 The output file is only ever replaced by a complete, validated phantom
 (:meth:`octcl.phantom.Phantom.save` writes a temporary file and renames it),
@@ -71,15 +72,16 @@ REGIMES = ("linear", "physical")
 #: physical regime stage 1 usually ends first at its 1500 iterations (11–12 s
 #: on two idle cores); its length matters little for the end result: on
 #: orange.png a 5 s stage 1 ended at 0.99944 after 281 s, the full 11 s one
-#: at 0.99950 after 318 s. The linear regime's 300 projections take 2–3 s.
+#: at 0.99950 after 318 s.
 FIELD_BUDGET_FRACTION = 0.08
 FIELD_BUDGET_CAP_S = 45.0
 #: The linear regime's share: its stage 1 is most of a short budget's work
-#: (with ``--time-budget 10`` it ends within its 5 s share on two idle cores).
+#: (7.7–8.5 s of a 21 s default run; with ``--time-budget 10`` the clock cuts
+#: its first display fit and leaves out the second, docs/benchmarks.md).
 LINEAR_FIELD_BUDGET_FRACTION = 0.5
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
-#: over them); the linear regime's projections follow them
-#: (:data:`octcl.host.linear.RETRIEVAL_ITERATIONS`).
+#: over them); in the linear regime those of the first display fit, the
+#: second has half as many (:func:`octcl.host.linear.linear_start`).
 FIELD_ITERATIONS = {"physical": 1500, "linear": 300}
 #: Stage 3's schedule in the linear regime: short steps while they gain.
 #: From a linear start the physical regime's schedule fell at once (its
@@ -89,9 +91,10 @@ FIELD_ITERATIONS = {"physical": 1500, "linear": 300}
 #: an Adam step moves every scatterer. So the main run is 10 steps at
 #: (lr_z_um, lr_u) = (1e−4, 1e−3), then restarts of 10 steps at half that
 #: from the best phantom, each repeated while it gains 1e−5 (at most 10).
-#: On skin_2 this took 0.99981 to 0.99992 in 20 steps; where the start is
-#: already at its best, the main run and one restart cost about 20 steps
-#: (docs/benchmarks.md, "Linear regime").
+#: On the development set it gained on skin_1 (+4.0e−5) and, in an
+#: earlier run, on skin_0 and skin_2 (+4.1e−5, +4.7e−5); where the start is
+#: already at its best it stops after 20 steps, about 12 s
+#: (docs/benchmarks.md, "the linear regime").
 LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
                                  restarts=(Phase(10, 0.00005, 0.0005),) * 10, score_every=10)
 #: torch's thread count in a fixed-schedule run unless given. The thread
@@ -149,7 +152,8 @@ class InvertResult:
     regime : str
         Stages 1–2 (:data:`REGIMES`): ``linear`` or ``physical``.
     field_iterations : int
-        Adam steps of stage 1 (in the linear regime, before its projections).
+        Adam steps of stage 1 (in the linear regime, of its first display fit;
+        the second has half as many).
     fixed_schedule : bool
         The run followed a fixed schedule (``iterations`` given): no
         decision was taken from the clock.
@@ -366,7 +370,7 @@ class _Start:
 
     phantom: Phantom
     schedule: RefineSchedule     # stage 3's, with the regime's energy floor
-    field_iterations: int        # steps stage 1 took
+    field_iterations: int        # stage 1's Adam steps (linear: the first display fit's, as asked)
     clock_steps: int             # of them, steps whose course the clock set
     threads: int | None          # torch threads of stage 1 (None: no torch)
     field_loss: float | None     # stage 1's last loss (physical regime)

@@ -17,7 +17,10 @@ scale. ``tests/test_linear.py`` renders decoded phantoms with the float64
 reference scanner, shadowing included, and compares the levels with those
 of the field.
 
-Stage 1, :func:`retrieve_field`. In this regime the scanner is the linear
+Stage 1, :func:`linear_start`: display fits (the physical regime's stage
+1, shortened), each followed by :func:`retrieve_field`, the best kept.
+
+Projections, :func:`retrieve_field`. In this regime the scanner is the linear
 operator A = H·F of :class:`octcl.host.field.FieldOperator` (a lateral
 Gaussian and the windowed depth DFT, diagonal in the 2-D Fourier domain).
 The target's 8-bit level L_p of pixel p says only that |A_p|/max|A| lies in
@@ -43,7 +46,8 @@ development set, not on the real one), and α = :data:`STEP` = 0.8 keeps
 them contracting. The intervals are shrunk by :data:`INTERVAL_MARGIN` (a
 tenth of their width in dB, at each end) so that the iterate lands inside
 a level rather than on its edge. The start is the regularised inverse of
-the de-logged target with zero phase, as in stage 1 of the physical regime.
+the de-logged target with zero phase, as in stage 1 of the physical regime,
+unless given (:func:`linear_start` gives a display fit's field).
 
 From the regularised inverse (``python scripts/bench_linear.py --skin 3``,
 docs/benchmarks.md; the 8-component score of the field's own 8-bit
@@ -300,7 +304,7 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_ste
     with the highest ``score`` is kept. The display fit puts the dark
     pixels near their levels (its loss is on the logarithmic display) and
     keeps the field close to its rendering in norm (‖F‖/‖A(F)‖ 1.1–2.3
-    against 6.2–6.6 from the regularised inverse); the projections then put
+    against 3.6–6.6 from the regularised inverse); the projections then put
     most pixels exactly at their level. Which length ends best varies from
     scan to scan (the problem is not convex). Measured on the development
     set (``python scripts/bench_linear.py --skin 3``, docs/benchmarks.md,

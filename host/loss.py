@@ -173,9 +173,13 @@ class DisplayLoss:
         self.weights, self.dtype = weights, dtype
         self._kept_lpips = None  # (weighted sum, its ∂/∂D, the terms) of the last lpips="keep" call
         self.network = lpips_network()
-        with torch.no_grad(), _onednn_off():
-            target = torch.as_tensor(np.asarray(target_scan), dtype=dtype)
-            self.target = {"Struct": target, **maps_torch(target)}
+        with torch.no_grad():
+            with _onednn_off():
+                target = torch.as_tensor(np.asarray(target_scan), dtype=dtype)
+                self.target = {"Struct": target, **maps_torch(target)}
+            # AlexNet with oneDNN, as in __call__: its features are then the same bits at every
+            # thread count (without oneDNN, layers 2–5 differ between 1 and 2 threads), so the
+            # loss does not depend on the thread count at which it was built.
             self._target_taps = {
                 name: self._taps(self.target[name]) for name in _LPIPS_TERMS.values()}
 

@@ -418,3 +418,25 @@ def test_ceiling_fails_loudly(stage2_phantom, layers_target):
     schedule = RefineSchedule(phases=(Phase(5, 0.01, 0.02, lpips=False),), restarts=())
     with pytest.raises(TimeBudgetExceeded, match="in stage 3 \\(refine\\) after 0 of 5 iterations"):
         refine(stage2_phantom, layers_target, schedule, ceiling=time.monotonic(), threads=1)
+
+
+def test_the_loss_is_the_same_whatever_thread_count_built_it(layers_target):
+    """Stage 3 builds its loss at its first use, at the loss's thread count: the target's LPIPS
+    features must not depend on it (without oneDNN, AlexNet's layers 2–5 differ between 1 and 2
+    threads, which changed a fixed schedule's file with ``--threads``)."""
+    from octcl.host.target import target_scan
+
+    scan = target_scan(layers_target)
+    display = np.clip(scan.astype(np.float64) + 0.01 * np.random.default_rng(0).standard_normal(scan.shape), 0, 1)
+    previous = torch.get_num_threads()
+    values = {}
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            loss = DisplayLoss(scan)
+            torch.set_num_threads(1)  # the same thread count for the evaluation itself
+            values[threads] = loss(display)
+    finally:
+        torch.set_num_threads(previous)
+    assert values[1].loss == values[2].loss
+    np.testing.assert_array_equal(values[1].grad_display, values[2].grad_display)
