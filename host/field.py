@@ -82,7 +82,7 @@ BELOW_FLOOR_FRACTION = 0.5
 
 
 # ------------------------------------------------------------------ target
-def target_levels(target) -> np.ndarray:
+def target_levels(target, config: ScannerConfig | None = None) -> np.ndarray:
     """The target's 8-bit levels.
 
     Parameters
@@ -90,6 +90,8 @@ def target_levels(target) -> np.ndarray:
     target : ndarray
         uint8 levels, or a float image as :func:`octcl._io.read_scan` returns
         it (level/255), which is rounded back to levels.
+    config : ScannerConfig, optional
+        If given, the target must have its shape (Nz, Nx).
 
     Returns
     -------
@@ -98,6 +100,9 @@ def target_levels(target) -> np.ndarray:
     target = np.asarray(target)
     if target.ndim != 2:
         raise ValueError(f"expected a 2-D B-scan, got shape {target.shape}")
+    if config is not None and target.shape != config.shape:
+        raise ValueError(f"target is {target.shape[0]}x{target.shape[1]}, the scanner makes "
+                         f"{config.shape[0]}x{config.shape[1]}")
     if target.dtype == np.uint8:
         return target
     if not np.issubdtype(target.dtype, np.floating) or not np.isfinite(target).all():
@@ -476,10 +481,7 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
         raise ValueError(f"need iterations ≥ 1 and time_budget_s > 0, got {iterations}, {time_budget_s}")
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-    levels = target_levels(target)
-    if levels.shape != config.shape:
-        raise ValueError(f"target is {levels.shape[0]}x{levels.shape[1]}, the scanner makes "
-                         f"{config.shape[0]}x{config.shape[1]}")
+    levels = target_levels(target, config)
     operator = FieldOperator(config)
     goal_display = target_display(levels)
     if initial is None:

@@ -228,10 +228,7 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
     start = time.perf_counter()
     if not (isinstance(iterations, int) and iterations >= 1):
         raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
-    levels = target_levels(target)
-    if levels.shape != config.shape:
-        raise ValueError(f"target is {levels.shape[0]}x{levels.shape[1]}, the scanner makes "
-                         f"{config.shape[0]}x{config.shape[1]}")
+    levels = target_levels(target, config)
     operator = FieldOperator(config)
     lower, upper = level_magnitude_bounds(levels)
     if initial is None:
