@@ -1,9 +1,12 @@
-"""The target of an inversion: one array, read from its PNG once, that every stage reads from.
+"""The target of an inversion: one array, read from its file once, that every stage reads from.
 
-A target is a uint8 array in one of two forms:
+The file is a PNG or a ``.npy`` of the scan's 2-D ``uint8`` grey levels (as
+the SynthOCT challenge ships its real scans), told by its first bytes. A
+target is a uint8 array in one of two forms:
 
 - (Nz, Nx): the 8-bit levels of a grey B-scan as the Virtual Scanner saves
-  it, an opaque grey RGBA PNG (every official scan is one);
+  it, an opaque grey RGBA PNG (every official scan is one), or as a ``.npy``
+  holds them, which therefore reads as the scanner's PNG of them;
 - (Nz, Nx, C): the pixels of any other PNG as stored, C = 1 (grey), 3 (RGB)
   or 4 (RGBA).
 
@@ -28,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from octcl._io import (NPY_MAGIC, ImageFormatError, decode_png_pixels, decode_scan_levels, read_png_pixels,
+from octcl._io import (NPY_MAGIC, ImageFormatError, decode_png_pixels, decode_scan_levels, read_image_bytes,
                        rgb_of_pixels, scan_of_rgb)
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 
@@ -77,21 +80,26 @@ def check_target(target, config: ScannerConfig = DEFAULT_CONFIG, name: str = "ta
 
 
 def read_target(path, config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """Read and check a target B-scan PNG (:func:`check_target`), in the smaller form that reads the same.
+    """Read and check a target B-scan file (:func:`check_target`), in the smaller form that reads the same.
+
+    The file is a PNG or a ``.npy`` of (Nz, Nx) ``uint8`` levels, read once
+    and decoded by :func:`decode_target`, as a batch reads its targets.
 
     Returns
     -------
     ndarray of uint8
-        (Nz, Nx) levels for an opaque grey RGB or RGBA file, else the
-        (Nz, Nx, C) pixels as stored (module docstring).
+        (Nz, Nx) levels for an opaque grey RGB or RGBA file or a ``.npy``,
+        else the (Nz, Nx, C) pixels as stored (module docstring).
 
     Raises
     ------
     ImageFormatError
-        Not a PNG, truncated, not 8-bit, a palette or grey+alpha image (the
-        official metric reads neither), not (Nz, Nx), or uniform.
+        Naming the file: missing or unreadable; not a PNG or ``.npy``,
+        truncated, not 8-bit, a palette or grey+alpha image (the official
+        metric reads neither), a ``.npy`` that is not a 2-D ``uint8`` array,
+        not (Nz, Nx), or uniform.
     """
-    return _target_of_pixels(read_png_pixels(path, config.shape), config, str(path))
+    return decode_target(read_image_bytes(path), config, str(path))
 
 
 def decode_target(data: bytes, config: ScannerConfig = DEFAULT_CONFIG, name: str = "target") -> np.ndarray:

@@ -31,6 +31,11 @@ real skin scans). :func:`decode_scan_levels` takes either file's bytes and
 :func:`check_scan_levels` checks an array; nothing else is converted
 either: a float array is refused rather than guessed to be in [0, 1] or
 [0, 255], and a colour PNG rather than averaged into non-integer levels.
+:func:`read_scan_pixels` (and :func:`read_scan`, built on it) reads a scan
+file of either kind, told by its first bytes: a ``.npy`` reads as the opaque
+grey PNG the scanner writes for its levels (:func:`write_grey_png`) reads,
+so every command that reads a scan (``octcl maps``, ``octcl score``,
+``octcl invert``) gives the same result for both.
 """
 
 from __future__ import annotations
@@ -72,6 +77,10 @@ def _matplotlib_grey_lut() -> np.ndarray:
 GREY_LUT = _matplotlib_grey_lut()
 
 
+#: Rows x columns of a SynthOCT B-scan: the size a ``.npy`` of levels read
+#: without an expected shape must have (every scan the challenge ships is this
+#: size; a PNG read without one may have any, :data:`MAX_IMAGE_PIXELS`).
+SCAN_SHAPE = (256, 512)
 #: The most pixels of a PNG read without an expected shape (``octcl maps`` of
 #: a scan of any size): 4096x4096, 128 times a 256x512 B-scan. The header's
 #: size is checked before any pixel is decoded, so a file that claims a huge
@@ -327,14 +336,58 @@ def scan_of_rgb(rgb: np.ndarray) -> np.ndarray:
     return np.mean(np.divide(rgb, 255, dtype=np.float32), axis=2)
 
 
+def read_scan_pixels(path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a B-scan file, PNG or ``.npy`` of grey levels, as a PNG's (rows, columns, channels) uint8 pixels.
+
+    The kind is told by the first bytes (:data:`NPY_MAGIC`), not the file
+    name. A PNG's pixels are returned as stored (:func:`read_png_pixels`,
+    the same checks and messages). A ``.npy`` must hold what
+    :func:`check_scan_levels` accepts, of ``shape`` or, without one, of
+    :data:`SCAN_SHAPE`; its levels are returned as the opaque grey RGBA
+    pixels of the PNG the scanner writes for them (:func:`write_grey_png`),
+    so that every reading of them (the task contract's scan, the official
+    metric's grey) is that PNG's, bit for bit.
+
+    Raises
+    ------
+    ImageFormatError
+        Naming the file: what :func:`read_png_pixels` refuses, or a ``.npy``
+        that is corrupt, truncated, of Python objects, not 2-D, of another
+        size or not ``uint8``.
+    """
+    data, source = read_image_bytes(path), str(path)
+    if data.startswith(NPY_MAGIC):
+        levels = check_scan_levels(_decode_npy(data, source), SCAN_SHAPE if shape is None else shape, source)
+        return grey_rgba_pixels(levels)
+    return decode_png_pixels(data, shape, source)
+
+
 def read_scan(path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Read a B-scan PNG as float32 in [0, 1]: RGB scaled by 1/255, then averaged (:func:`scan_of_rgb`)."""
-    return scan_of_rgb(read_png_rgb(path, shape))
+    """Read a B-scan file as float32 in [0, 1]: RGB scaled by 1/255, then averaged (:func:`scan_of_rgb`).
+
+    A PNG, or a ``.npy`` of its grey levels, which reads as the scanner's
+    grey PNG of them (:func:`read_scan_pixels`: checks, messages).
+    """
+    return scan_of_rgb(rgb_of_pixels(read_scan_pixels(path, shape)))
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
     """A PNG chunk: length, type, data, CRC-32 of type and data (PNG specification, section 5.3)."""
     return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def grey_rgba_pixels(levels: np.ndarray) -> np.ndarray:
+    """(rows, columns, 4) uint8 pixels of an opaque grey RGBA image of 2-D uint8 ``levels``: R = G = B, alpha 255.
+
+    The pixels :func:`write_grey_png` writes for the levels.
+    """
+    levels = np.asarray(levels)
+    if levels.ndim != 2 or levels.dtype != np.uint8:
+        raise ValueError(f"expected a 2-D uint8 image, got {levels.dtype} {levels.shape}")
+    rgba = np.empty(levels.shape + (4,), np.uint8)
+    rgba[..., :3] = levels[..., None]
+    rgba[..., 3] = 255
+    return rgba
 
 
 def write_grey_png(path, levels: np.ndarray) -> None:
@@ -347,15 +400,11 @@ def write_grey_png(path, levels: np.ndarray) -> None:
     126 kB). The write is atomic: ``path`` is replaced only by a complete
     file.
     """
-    levels = np.asarray(levels)
-    if levels.ndim != 2 or levels.dtype != np.uint8:
-        raise ValueError(f"expected a 2-D uint8 image, got {levels.dtype} {levels.shape}")
-    height, width = levels.shape
+    rgba = grey_rgba_pixels(levels)
+    height, width = rgba.shape[:2]
     rows = np.empty((height, 1 + 4 * width), np.uint8)
     rows[:, 0] = 0  # filter type None
-    rgba = rows[:, 1:].reshape(height, width, 4)
-    rgba[..., :3] = levels[..., None]
-    rgba[..., 3] = 255
+    rows[:, 1:] = rgba.reshape(height, 4 * width)
     header = struct.pack(">IIBBBBB", width, height, 8, 6, 0, 0, 0)  # 8-bit RGBA, no interlace
     with atomic_write(path) as handle:
         handle.write(PNG_SIGNATURE + _png_chunk(b"IHDR", header)

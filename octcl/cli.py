@@ -361,15 +361,19 @@ def build_parser() -> argparse.ArgumentParser:
                         "work-item on CPUs)")
 
     p = command("maps", "write the official OAC, SC and RSC maps of a B-scan", _cmd_maps)
-    p.add_argument("scan", help="B-scan PNG")
+    p.add_argument("scan", help="B-scan: a PNG, or a .npy of its 256x512 uint8 grey levels (the SynthOCT "
+                                "challenge's real scans)")
     p.add_argument("-o", "--output-dir", help="folder for SCAN_OAC.png, SCAN_SC.png, SCAN_RSC.png "
                                               "(default: beside the scan)")
 
     p = command("score", "SynthOCT score of predicted B-scans against references", _cmd_score)
-    p.add_argument("ref", nargs="?", help="reference B-scan PNG")
-    p.add_argument("pred", nargs="?", help="predicted B-scan PNG")
-    p.add_argument("--refs", help="folder of reference scans")
-    p.add_argument("--preds", help="folder of predicted scans, paired with --refs by file name")
+    p.add_argument("ref", nargs="?", metavar="REF.png|.npy",
+                   help="reference B-scan: a PNG, or a .npy of its 256x512 uint8 grey levels")
+    p.add_argument("pred", nargs="?", metavar="PRED.png|.npy",
+                   help="predicted B-scan: a PNG, or a .npy of its 256x512 uint8 grey levels")
+    p.add_argument("--refs", help="folder of reference scans (*.npy, and *.png other than map files)")
+    p.add_argument("--preds", help="folder of predicted scans, paired with --refs by file name (NAME.png or "
+                                   "NAME.npy for either)")
     p.add_argument("--csv", help="write per-scan components and medians to this CSV")
 
     p = command("phantom", "make a phantom", _cmd_phantom)
@@ -381,7 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="phantom text file to write")
 
     p = command("invert", "invert a target B-scan into a phantom, or every scan of a folder tree", _cmd_invert)
-    p.add_argument("target", nargs="?", help="target B-scan PNG (256×512)")
+    p.add_argument("target", nargs="?", help="target B-scan (256×512): a PNG, or a .npy of its uint8 grey levels")
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
     p.add_argument("--time-budget", type=float, default=600.0,
                    help="seconds per scan (default 600); with --iterations only a ceiling that fails the run")

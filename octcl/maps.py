@@ -26,7 +26,10 @@ derives from it (``physics.md`` section 3):
 
 :func:`map_levels` reproduces the saved 8-bit levels bit for bit, including
 the float32 arithmetic that numpy applies to the float32 scan, without
-matplotlib. :func:`maps_torch` is the differentiable counterpart used as a
+matplotlib. :func:`write_maps` reads the scan from a PNG or from a ``.npy``
+of its 2-D ``uint8`` grey levels (as the SynthOCT challenge ships its real
+scans), which gives the maps of the scanner's grey PNG of those levels
+(:func:`octcl._io.read_scan`). :func:`maps_torch` is the differentiable counterpart used as a
 loss: the same maps as continuous values in [0, 1].
 """
 
@@ -299,9 +302,12 @@ def map_levels(scan: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def write_maps(scan_path, out_dir=None) -> dict[str, Path]:
-    """Write ``<stem>_OAC.png``, ``<stem>_SC.png`` and ``<stem>_RSC.png`` of a scan PNG.
+    """Write ``<stem>_OAC.png``, ``<stem>_SC.png`` and ``<stem>_RSC.png`` of a scan file.
 
-    Each is an opaque grey RGBA PNG with the official processor's levels
+    The scan is a PNG of any size, or a ``.npy`` of 256x512 ``uint8`` grey
+    levels, read as the scanner's grey PNG of them (:func:`octcl._io.read_scan`):
+    ``scan.npy`` gives the same map files as that ``scan.png``. Each map is
+    an opaque grey RGBA PNG with the official processor's levels
     (:func:`map_levels`), written atomically next to the scan or in
     ``out_dir``.
 
@@ -314,6 +320,8 @@ def write_maps(scan_path, out_dir=None) -> dict[str, Path]:
     ------
     OutputError
         An output path cannot be written; checked before the scan is read.
+    ImageFormatError
+        The scan file cannot be read as a B-scan (:func:`octcl._io.read_scan_pixels`).
     """
     scan_path = Path(scan_path)
     out_dir = scan_path.parent if out_dir is None else Path(out_dir)

@@ -7,6 +7,11 @@ Simoncelli & Bovik 2003) and 1 − LPIPS (v0.1 AlexNet, Zhang et al., CVPR
 2018; :mod:`octcl._lpips`), eight in all. Over a set of scans the score is
 the mean of the eight per-component medians.
 
+A scan is a PNG or a ``.npy`` of its 2-D ``uint8`` grey levels (as the
+SynthOCT challenge ships its real scans; :func:`octcl._io.read_scan_pixels`),
+told by its first bytes. A ``.npy`` of levels L scores exactly as the opaque
+grey PNG the scanner writes for L (:func:`octcl._io.write_grey_png`).
+
 The official metric reads every map PNG with
 ``skimage.io.imread(path, as_gray=True)`` and ``img_as_float``; LPIPS takes
 that float image, MS-SSIM takes ``(img * 255).astype(uint8)``. The truncation
@@ -24,13 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ._io import SCAN_SHAPE
+
 MAP_NAMES = ("Struct", "OAC", "SC", "RSC")
 COMPONENTS = tuple(f"msssim_{name}" for name in MAP_NAMES) + tuple(
     f"one_minus_lpips_{name}" for name in MAP_NAMES
 )
-SCAN_SHAPE = (256, 512)
 # Files in a scan directory that are maps of a scan, not scans.
 _MAP_FILE_SUFFIXES = ("_OAC.png", "_SC.png", "_RSC.png")
+# Suffixes of scan files in a folder of references or predictions (the kind is told by the bytes).
+_SCAN_SUFFIXES = (".png", ".npy")
 # skimage's rgb2gray luminance weights (ITU-R BT.709 primaries).
 _LUMINANCE = (0.2125, 0.7154, 0.0721)
 
@@ -164,15 +172,15 @@ def _maps_for_metrics(struct: np.ndarray, scan: np.ndarray) -> dict:
 
 
 def _scan_maps_for_metrics(path) -> dict:
-    """The four maps of a scan PNG, each as the official metric reads it."""
-    from ._io import read_png_pixels, rgb_of_pixels, scan_of_rgb
+    """The four maps of a scan file (PNG, or ``.npy`` read as its grey PNG), each as the official metric reads it."""
+    from ._io import read_scan_pixels, rgb_of_pixels, scan_of_rgb
 
-    pixels = read_png_pixels(path, shape=SCAN_SHAPE)
+    pixels = read_scan_pixels(path, shape=SCAN_SHAPE)
     return _maps_for_metrics(_grey_of_pixels(pixels, str(path)), scan_of_rgb(rgb_of_pixels(pixels)))
 
 
 def score(ref, pred) -> dict:
-    """Score one predicted B-scan PNG against its reference (both 256×512).
+    """Score one predicted B-scan against its reference (both 256×512, each a PNG or a ``.npy`` of levels).
 
     Returns
     -------
@@ -186,13 +194,16 @@ def score(ref, pred) -> dict:
 
 
 def score_directories(ref_dir, pred_dir, progress=None) -> dict:
-    """Score every reference scan in ``ref_dir`` against the same name in ``pred_dir``.
+    """Score every reference scan in ``ref_dir`` against the scan of the same name in ``pred_dir``.
 
     Parameters
     ----------
     ref_dir, pred_dir : str or Path
         Reference scans are the ``*.png`` of ``ref_dir`` except the map files
-        ``*_OAC.png``, ``*_SC.png``, ``*_RSC.png``.
+        ``*_OAC.png``, ``*_SC.png``, ``*_RSC.png``, and the ``*.npy``. The
+        prediction of ``NAME.png`` or ``NAME.npy`` is the file of the same
+        name in ``pred_dir``, else ``NAME`` with the other suffix: a scan
+        may be a PNG on one side and a ``.npy`` on the other.
     progress : callable, optional
         Called as ``progress(i, n, name)`` after scan ``i`` of ``n`` (from 1).
 
@@ -208,23 +219,41 @@ def score_directories(ref_dir, pred_dir, progress=None) -> dict:
     FileNotFoundError
         ``ref_dir`` has no scans, or a scan has no prediction (all such files
         are named).
+    ValueError
+        ``ref_dir`` holds one scan twice, as ``NAME.png`` and ``NAME.npy``
+        (all such pairs are named).
     """
     ref_dir, pred_dir = Path(ref_dir), Path(pred_dir)
     names = sorted(
-        path.name for path in ref_dir.glob("*.png") if not path.name.endswith(_MAP_FILE_SUFFIXES)
+        path.name for suffix in _SCAN_SUFFIXES for path in ref_dir.glob(f"*{suffix}")
+        if not path.name.endswith(_MAP_FILE_SUFFIXES)
     )
     if not names:
-        raise FileNotFoundError(f"{ref_dir}: no reference scans (*.png other than map files)")
-    missing = [name for name in names if not (pred_dir / name).is_file()]
+        raise FileNotFoundError(f"{ref_dir}: no reference scans (*.npy, or *.png other than map files)")
+    stems = {}
+    for name in names:
+        stems.setdefault(Path(name).stem, []).append(name)
+    twice = [" and ".join(pair) for pair in stems.values() if len(pair) > 1]
+    if twice:
+        raise ValueError(f"{ref_dir}: the same reference scan twice: {'; '.join(twice)}; keep one of each")
+    preds = {name: _prediction(pred_dir, name) for name in names}
+    missing = [name for name, pred in preds.items() if pred is None]
     if missing:
         raise FileNotFoundError(f"{pred_dir}: no prediction for {', '.join(missing)}")
     scans = {}
     for index, name in enumerate(names, start=1):
-        scans[name] = score(ref_dir / name, pred_dir / name)
+        scans[name] = score(ref_dir / name, preds[name])
         if progress is not None:
             progress(index, len(names), name)
     medians, global_ = global_score(scans.values())
     return {"scans": scans, "medians": medians, "score": global_}
+
+
+def _prediction(pred_dir: Path, ref_name: str) -> Path | None:
+    """The prediction of the reference scan ``ref_name``: the same name, else the other scan suffix; or None."""
+    ref = Path(ref_name)
+    candidates = [ref.name] + [ref.stem + suffix for suffix in _SCAN_SUFFIXES if suffix != ref.suffix]
+    return next((pred_dir / name for name in candidates if (pred_dir / name).is_file()), None)
 
 
 def global_score(scans) -> tuple[dict, float]:

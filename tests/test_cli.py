@@ -7,6 +7,7 @@ import struct
 import subprocess
 import sys
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -370,3 +371,91 @@ def test_invert_fixed_schedule_past_its_budget_fails_loudly(tmp_path, capsys, of
     assert message.startswith("octcl invert: error: ") and str(target) in message
     assert "did not fit the time budget of 10 s" in message and "in stage 1" in message
     assert "nothing was written" in message and not output.exists()
+
+
+def _save_levels(png, npy):
+    """``np.save`` the grey levels of the opaque grey scan ``png`` as ``npy``, as the SynthOCT challenge ships scans."""
+    np.save(npy, read_png_rgb(png)[..., 0])
+    return npy
+
+
+def test_npy_scans_read_as_their_pngs_in_score_maps_and_invert(tmp_path, capsys, official_data):
+    """score, maps and invert of a .npy of a scan's levels give what they give for the scan's PNG."""
+    pngs = {name: official_data / f"Scan_{name}.png" for name in ("Exp1_Uniform_A", "Exp1_Uniform_B", "Exp2_Layers_A")}
+    npys = {name: _save_levels(png, tmp_path / f"{name}.npy") for name, png in pngs.items()}
+
+    def components(ref, pred):
+        status, out, err = run(capsys, "score", ref, pred, "--quiet", "--json")
+        assert (status, err) == (0, "")
+        payload = json.loads(out)
+        assert (payload["ref"], payload["pred"]) == (str(ref), str(pred))
+        return {key: payload[key] for key in COMPONENT_KEYS}
+
+    expected = components(pngs["Exp1_Uniform_A"], pngs["Exp1_Uniform_B"])
+    assert abs(expected["mean"] - 0.6724934) < 1e-5  # the official score of the pair
+    assert components(npys["Exp1_Uniform_A"], pngs["Exp1_Uniform_B"]) == expected
+    assert components(npys["Exp1_Uniform_A"], npys["Exp1_Uniform_B"]) == expected
+
+    for kind in ("png", "npy"):
+        (tmp_path / kind).mkdir()
+    scans = {"png": tmp_path / "png" / "layers.png", "npy": tmp_path / "npy" / "layers.npy"}
+    scans["png"].write_bytes(pngs["Exp2_Layers_A"].read_bytes())
+    scans["npy"].write_bytes(npys["Exp2_Layers_A"].read_bytes())
+    written = {}
+    for kind, scan in scans.items():
+        human, written[kind] = run_both(capsys, "maps", "maps", scan, "-o", tmp_path / f"{kind}_maps")
+        assert written[kind]["scan"] == str(scan)
+    for name in ("OAC", "SC", "RSC"):
+        png_map, npy_map = (Path(written[kind]["maps"][name]) for kind in ("png", "npy"))
+        assert npy_map.name == png_map.name == f"layers_{name}.png"
+        assert npy_map.read_bytes() == png_map.read_bytes()
+        official = official_data / f"Scan_Exp2_Layers_A_{name}.png"
+        np.testing.assert_array_equal(read_png_rgb(npy_map), read_png_rgb(official))
+
+    results = {}
+    for kind, scan in scans.items():
+        status, out, err = run(capsys, "invert", scan, "-o", tmp_path / f"{kind}.txt", "--iterations", 1,
+                               "--field-iterations", 2, "--quiet", "--json")
+        assert (status, err) == (0, "")
+        results[kind] = json.loads(out)
+        assert results[kind]["target"] == str(scan) and results[kind]["output"] == str(tmp_path / f"{kind}.txt")
+    assert len(Phantom.load(tmp_path / "npy.txt")) == results["npy"]["scatterers"] > 0
+    assert (tmp_path / "npy.txt").read_bytes() == (tmp_path / "png.txt").read_bytes()
+    assert results["npy"]["components"] == results["png"]["components"]
+
+
+#: .npy files that are not B-scans, and the message (after ``FILE: ``) every command gives for them.
+BAD_NPY = {
+    "float64": (np.zeros((256, 512)), "float64 array; a B-scan is a 2-D uint8 array of grey levels (256x512, rows x "
+                                      "columns) (floats are not scaled or rounded: save the levels as uint8)"),
+    "3-D": (np.zeros((256, 512, 3), np.uint8), "3-D array of shape (256, 512, 3); a B-scan is a 2-D uint8 array"),
+    "255x512": (np.zeros((255, 512), np.uint8), "array is 255x512 (rows x columns), expected 256x512"),
+    "object": (np.full((256, 512), None, dtype=object), ".npy of Python objects (dtype object), not loaded"),
+    "empty": (np.zeros((0,), np.uint8), "empty array (shape (0,)); a B-scan is a 2-D uint8 array"),
+    "truncated": (np.zeros((256, 512), np.uint8), "truncated .npy file: its header announces a uint8 array of shape "
+                                                  "(256, 512) (131,072 bytes) but 1,000 bytes follow"),
+}
+
+
+@pytest.mark.parametrize("argv", [
+    ["maps", "{bad}"],
+    ["maps", "{bad}", "-o", "{tmp}/maps"],
+    ["score", "{bad}", "{good}"],
+    ["score", "{good}", "{bad}"],
+    ["score", "--refs", "{tmp}/refs", "--preds", "{tmp}/preds"],
+    ["invert", "{bad}", "-o", "{tmp}/x.txt", "--iterations", "1"],
+])
+@pytest.mark.parametrize("kind", list(BAD_NPY))
+def test_npy_that_is_not_a_scan_exits_2_naming_the_file(tmp_path, capsys, official_data, kind, argv):
+    array, message = BAD_NPY[kind]
+    (tmp_path / "refs").mkdir(), (tmp_path / "preds").mkdir()
+    bad = tmp_path / "refs" / "scan.npy"
+    np.save(bad, array, allow_pickle=array.dtype == object)
+    if kind == "truncated":
+        bad.write_bytes(bad.read_bytes()[:-131072 + 1000])
+    good = official_data / "Scan_Exp1_Uniform_A.png"
+    (tmp_path / "preds" / "scan.png").write_bytes(good.read_bytes())
+    status, out, err = run(capsys, *[a.format(tmp=tmp_path, bad=bad, good=good) for a in argv])
+    assert (status, out) == (2, "")
+    assert err.startswith(f"octcl {argv[0]}: error: {bad}: {message}") and err.count("\n") == 1
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["preds", "refs"]  # nothing written

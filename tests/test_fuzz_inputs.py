@@ -31,7 +31,8 @@ from hypothesis import strategies as st
 from PIL import Image
 
 import octcl.phantom
-from octcl._io import MAX_IMAGE_PIXELS, PNG_SIGNATURE, ImageFormatError, decode_scan_levels, read_png_pixels
+from octcl._io import (MAX_IMAGE_PIXELS, PNG_SIGNATURE, ImageFormatError, decode_scan_levels, read_png_pixels,
+                       read_scan_pixels)
 from octcl.config import ConfigError, ScannerConfig
 from octcl.host.target import decode_target, read_target
 from octcl.phantom import Phantom, PhantomError
@@ -244,6 +245,7 @@ def test_png_readers_read_or_name_the_file(tmp_path, fuzz_settings):
         path.write_bytes(data)
         readers = {
             "pixels": lambda: read_png_pixels(path, shape),
+            "scan pixels": lambda: read_scan_pixels(path, shape),
             "levels": lambda: decode_scan_levels(data, SHAPE, str(path)),
             "map": lambda: _read_map_for_metrics(path),
             "target": lambda: read_target(path),
@@ -259,7 +261,7 @@ def test_png_readers_read_or_name_the_file(tmp_path, fuzz_settings):
                 continue
             seen.add(f"{name} read")
             assert isinstance(array, np.ndarray) and array.size <= 4 * MAX_IMAGE_PIXELS, name
-            if name == "pixels":
+            if name in ("pixels", "scan pixels"):
                 assert array.dtype == np.uint8 and array.ndim == 3 and array.shape[2] in (1, 2, 3, 4)
                 assert shape is None or array.shape[:2] == shape
             elif name == "map":
@@ -269,7 +271,8 @@ def test_png_readers_read_or_name_the_file(tmp_path, fuzz_settings):
 
     seen = set()
     check()
-    assert seen == {"refused", "pixels read", "levels read", "map read", "target read", "target bytes read"}
+    assert seen == {"refused", "pixels read", "scan pixels read", "levels read", "map read", "target read",
+                    "target bytes read"}
 
 
 # ------------------------------------------------------------ .npy scans
@@ -300,10 +303,12 @@ def _npy_files(draw) -> bytes:
 
 # NumPy parses a .npy header with ast.literal_eval, which warns about the odd escapes of generated headers.
 @pytest.mark.filterwarnings("ignore:invalid escape sequence:DeprecationWarning")
-def test_npy_reader_reads_or_names_the_file(fuzz_settings):
-    """decode_scan_levels and decode_target of any bytes starting as a ``.npy``: a (256, 512) uint8 array, or an
+def test_npy_reader_reads_or_names_the_file(tmp_path, fuzz_settings):
+    """decode_scan_levels, decode_target and the scan file reader (read_scan_pixels, as octcl score and maps
+    read) of any bytes starting as a ``.npy``: a (256, 512) uint8 array (levels, or their grey RGBA pixels), or an
     ImageFormatError starting with the file's name; nothing is unpickled."""
     source = "Male/Cheek/scan.npy"
+    path = tmp_path / "scan.npy"
 
     @fuzz_settings(EXAMPLES["npy"])
     @given(file=files(_npy_files()))
@@ -314,15 +319,19 @@ def test_npy_reader_reads_or_names_the_file(fuzz_settings):
     @example(file=(b"\x93NUMPY\x01\x00\x10\x00{'descr': ('|u1',\n", True))
     def check(file):
         data = file[0]
-        for read in (lambda: decode_scan_levels(data, SHAPE, source), lambda: decode_target(data, name=source)):
+        path.write_bytes(data)
+        readers = [(lambda: decode_scan_levels(data, SHAPE, source), source, SHAPE),
+                   (lambda: decode_target(data, name=source), source, SHAPE),
+                   (lambda: read_scan_pixels(path), str(path), SHAPE + (4,))]
+        for read, name, shape in readers:
             try:
                 with no_hang():
                     levels = read()
             except ImageFormatError as exc:
-                assert str(exc).startswith(f"{source}:"), exc
+                assert str(exc).startswith(f"{name}:"), exc
                 seen.add("refused")
                 continue
-            assert levels.dtype == np.uint8 and levels.shape == SHAPE
+            assert levels.dtype == np.uint8 and levels.shape == shape
             seen.add("read")
 
     seen = set()

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from octcl._io import (GREY_LUT, MAX_IMAGE_FILE_BYTES, MAX_IMAGE_PIXELS, PNG_SIGNATURE, ImageFormatError,
+from octcl._io import (GREY_LUT, MAX_IMAGE_FILE_BYTES, MAX_IMAGE_PIXELS, PNG_SIGNATURE, SCAN_SHAPE, ImageFormatError,
                        OutputError, _png_chunk, atomic_write, check_scan_levels, decode_scan_levels,
-                       read_image_bytes, read_png_pixels, read_png_rgb, read_scan, write_grey_png)
+                       grey_rgba_pixels, read_image_bytes, read_png_pixels, read_png_rgb, read_scan, read_scan_pixels,
+                       write_grey_png)
 
 SHAPE = (256, 512)
 
@@ -167,6 +168,70 @@ def test_bad_npy_files_are_refused():
         decode_scan_levels(b"", SHAPE, "x.npy")
     with pytest.raises(ImageFormatError, match=r"x\.npy: neither a PNG nor a \.npy file"):
         decode_scan_levels(b"x y z E\n", SHAPE, "x.npy")
+
+
+def test_npy_scan_reads_as_the_grey_png_of_its_levels(tmp_path):
+    """A .npy of levels gives the pixels, and so the scan, of the PNG the scanner writes for them, bit for bit."""
+    assert SCAN_SHAPE == SHAPE
+    levels = np.random.default_rng(3).integers(0, 256, SHAPE, dtype=np.uint8)
+    levels[0, :256] = np.arange(256)
+    write_grey_png(tmp_path / "scan.png", levels)
+    png_pixels = read_png_pixels(tmp_path / "scan.png")
+    assert png_pixels.shape == SHAPE + (4,)
+    np.testing.assert_array_equal(grey_rgba_pixels(levels), png_pixels)
+    np.save(tmp_path / "scan.npy", levels)
+    np.save(tmp_path / "fortran.npy", np.asfortranarray(levels))
+    # The kind is told by the bytes: a .npy named .png is a .npy, a PNG named .npy a PNG.
+    (tmp_path / "npy_named.png").write_bytes((tmp_path / "scan.npy").read_bytes())
+    (tmp_path / "png_named.npy").write_bytes((tmp_path / "scan.png").read_bytes())
+    png_scan = read_scan(tmp_path / "scan.png", SHAPE)
+    for name in ("scan.npy", "fortran.npy", "npy_named.png", "png_named.npy"):
+        for shape in (SHAPE, None):
+            pixels = read_scan_pixels(tmp_path / name, shape)
+            assert pixels.dtype == np.uint8 and pixels.shape == SHAPE + (4,), name
+            np.testing.assert_array_equal(pixels, png_pixels, err_msg=name)
+            scan = read_scan(tmp_path / name, shape)
+            assert scan.dtype == np.float32
+            np.testing.assert_array_equal(scan, png_scan, err_msg=name)
+    np.testing.assert_array_equal(np.rint(png_scan * 255), levels)  # the mean of 3 channels: not always L/255
+
+
+def npy_scan_file(path, kind):
+    """A file ``path`` holding a .npy that is not a B-scan, of ``kind``; returns the message its reading gives."""
+    good = npy_bytes(np.zeros(SHAPE, np.uint8))
+    arrays = {
+        "float64": (np.zeros(SHAPE), "float64 array; a B-scan is a 2-D uint8 array of grey levels (256x512, rows "
+                                     "x columns) (floats are not scaled or rounded: save the levels as uint8)"),
+        "3-D": (np.zeros(SHAPE + (3,), np.uint8), "3-D array of shape (256, 512, 3); a B-scan is a 2-D uint8 array"),
+        "255x512": (np.zeros((255, 512), np.uint8), "array is 255x512 (rows x columns), expected 256x512"),
+        "empty": (np.zeros((0,), np.uint8), "empty array (shape (0,)); a B-scan is a 2-D uint8 array"),
+    }
+    if kind == "truncated":
+        path.write_bytes(good[:len(good) - 131072 + 1000])
+        return ("truncated .npy file: its header announces a uint8 array of shape (256, 512) (131,072 bytes) but "
+                "1,000 bytes follow")
+    if kind == "object":
+        path.write_bytes(npy_bytes(np.full(SHAPE, None, dtype=object), allow_pickle=True))
+        return ".npy of Python objects (dtype object), not loaded (that would run pickle)"
+    array, message = arrays[kind]
+    path.write_bytes(npy_bytes(array))
+    return message
+
+
+NPY_SCAN_FAULTS = ("float64", "3-D", "255x512", "truncated", "object", "empty")
+
+
+@pytest.mark.parametrize("kind", NPY_SCAN_FAULTS)
+def test_npy_that_is_not_a_scan_is_refused_naming_the_file(tmp_path, kind):
+    """With or without an expected shape (a .npy without one must be a SynthOCT scan, 256x512)."""
+    path = tmp_path / "Cheek" / "x.npy"
+    path.parent.mkdir()
+    message = npy_scan_file(path, kind)
+    for shape in (SHAPE, None):
+        for read in (read_scan_pixels, read_scan):
+            with pytest.raises(ImageFormatError) as caught:
+                read(path, shape)
+            assert str(caught.value).startswith(f"{path}: {message}") and "\n" not in str(caught.value)
 
 
 def test_colour_png_is_refused_as_levels(tmp_path):

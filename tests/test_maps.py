@@ -232,6 +232,41 @@ def test_write_maps_defaults_to_the_scan_folder(official, tmp_path):
     assert all(p.parent == tmp_path for p in written.values())
 
 
+@pytest.mark.parametrize("stem", OFFICIAL_SCANS)
+def test_write_maps_of_a_npy_writes_the_png_maps_byte_for_byte(official, tmp_path, stem):
+    """``scan.npy`` of a scan's grey levels: the same three files as ``scan.png``, beside it or in ``out_dir``."""
+    path, _, official_levels = official[stem]
+    rgb = read_png_rgb(path)
+    for kind in ("png", "npy"):
+        (tmp_path / kind).mkdir()
+    (tmp_path / "png" / "scan.png").write_bytes(path.read_bytes())
+    np.save(tmp_path / "npy" / "scan.npy", rgb[..., 0])
+    from_png = maps.write_maps(tmp_path / "png" / "scan.png")
+    from_npy = maps.write_maps(tmp_path / "npy" / "scan.npy")
+    assert sorted(p.name for p in (tmp_path / "npy").iterdir()) == [
+        "scan.npy", "scan_OAC.png", "scan_RSC.png", "scan_SC.png"
+    ]
+    for name in maps.MAP_NAMES:
+        assert from_npy[name].read_bytes() == from_png[name].read_bytes(), name
+        np.testing.assert_array_equal(read_png_rgb(from_npy[name])[..., 0], official_levels[name])
+    elsewhere = maps.write_maps(tmp_path / "npy" / "scan.npy", out_dir=tmp_path / "maps")
+    assert all(elsewhere[name].read_bytes() == from_png[name].read_bytes() for name in maps.MAP_NAMES)
+
+
+@pytest.mark.parametrize("shape, dtype, message", [
+    ((255, 512), np.uint8, "array is 255x512 (rows x columns), expected 256x512"),
+    ((256, 512), np.float64, "float64 array; a B-scan is a 2-D uint8 array"),
+    ((256, 512, 3), np.uint8, "3-D array of shape (256, 512, 3)"),
+])
+def test_write_maps_of_a_npy_that_is_not_a_scan_writes_nothing(tmp_path, shape, dtype, message):
+    """A .npy must be a SynthOCT scan (256x512 uint8), though a PNG of any size has maps."""
+    np.save(tmp_path / "scan.npy", np.zeros(shape, dtype))
+    with pytest.raises(octcl._io.ImageFormatError) as caught:
+        maps.write_maps(tmp_path / "scan.npy")
+    assert str(caught.value).startswith(f"{tmp_path / 'scan.npy'}: {message}")
+    assert [p.name for p in tmp_path.iterdir()] == ["scan.npy"]
+
+
 def test_write_maps_replaces_existing_files_atomically(official, tmp_path, monkeypatch):
     path, _, official_levels = official[OFFICIAL_SCANS[1]]
     destination = tmp_path / f"{path.stem}_SC.png"

@@ -13,7 +13,9 @@ from octcl.scorer import (
     MAP_NAMES,
     _levels_for_metrics,
     _msssim_input,
+    _prediction,
     _read_map_for_metrics,
+    _scan_maps_for_metrics,
     score,
     score_directories,
     score_maps,
@@ -147,4 +149,98 @@ def test_score_directories_names_missing_predictions(official_data, tmp_path):
     shutil.copy(official_data / LAYERS_A, ref_dir / LAYERS_A)
     shutil.copy(official_data / LAYERS_A, pred_dir / LAYERS_A)
     with pytest.raises(FileNotFoundError, match=f"no prediction for {UNIFORM_A}$"):
+        score_directories(ref_dir, pred_dir)
+
+
+def _save_levels(png, npy):
+    """``np.save`` the grey levels of the opaque grey scan ``png`` to ``npy``; returns them."""
+    rgb = read_png_rgb(png)
+    assert (rgb == rgb[..., :1]).all()
+    np.save(npy, rgb[..., 0])
+    return rgb[..., 0]
+
+
+@pytest.mark.parametrize("scan", [UNIFORM_A, LAYERS_A, "levels"])
+def test_npy_scan_maps_are_those_of_its_grey_png(official_data, tmp_path, scan):
+    """The four maps as the metric reads them, from a .npy of levels L and the scanner's PNG of L: equal, bit for bit.
+
+    Struct is the metric's reading of the grey RGBA PNG (:func:`_levels_for_metrics`), not L/255: 33 levels differ.
+    """
+    if scan == "levels":
+        levels = _all_levels_image()
+        write_grey_png(tmp_path / "levels.png", levels)
+        png = tmp_path / "levels.png"
+        np.save(tmp_path / "levels.npy", levels)
+    else:
+        png = official_data / scan
+        levels = _save_levels(png, tmp_path / "levels.npy")
+    from_png, from_npy = _scan_maps_for_metrics(png), _scan_maps_for_metrics(tmp_path / "levels.npy")
+    assert tuple(from_npy) == MAP_NAMES
+    for name in MAP_NAMES:
+        assert from_npy[name].dtype == np.float64 and from_npy[name].shape == (256, 512)
+        np.testing.assert_array_equal(from_npy[name], from_png[name], err_msg=name)
+    np.testing.assert_array_equal(from_npy["Struct"], _levels_for_metrics(levels))
+    assert not np.array_equal(_msssim_input(from_npy["Struct"]), levels)
+
+
+def test_npy_scores_as_its_png(official_data, lpips_weights, tmp_path):
+    _save_levels(official_data / UNIFORM_A, tmp_path / "a.npy")
+    _save_levels(official_data / UNIFORM_B, tmp_path / "b.npy")
+    expected = score(official_data / UNIFORM_A, official_data / UNIFORM_B)
+    assert score(tmp_path / "a.npy", official_data / UNIFORM_B) == expected
+    assert score(official_data / UNIFORM_A, tmp_path / "b.npy") == expected
+
+
+def test_score_directories_with_npy_scans_as_with_pngs(official_data, lpips_weights, tmp_path):
+    """.npy references, paired with PNG or .npy predictions, score as the PNG folder, number for number."""
+    folders = {name: tmp_path / name for name in ("png_refs", "png_preds", "npy_refs", "mixed_preds")}
+    for folder in folders.values():
+        folder.mkdir()
+    for name in (UNIFORM_A, LAYERS_A):
+        shutil.copy(official_data / name, folders["png_refs"] / name)
+        _save_levels(official_data / name, folders["npy_refs"] / name.replace(".png", ".npy"))
+    for name in ("Scan_Exp1_Uniform_A_OAC.png", "Scan_Exp1_Uniform_A_SC.png", "Scan_Exp1_Uniform_A_RSC.png"):
+        shutil.copy(official_data / name, folders["npy_refs"] / name)  # map files: not scans
+    shutil.copy(official_data / UNIFORM_B, folders["png_preds"] / UNIFORM_A)
+    shutil.copy(official_data / LAYERS_A, folders["png_preds"] / LAYERS_A)
+    # A .npy reference's PNG prediction, and another's .npy prediction.
+    shutil.copy(official_data / UNIFORM_B, folders["mixed_preds"] / UNIFORM_A)
+    _save_levels(official_data / LAYERS_A, folders["mixed_preds"] / LAYERS_A.replace(".png", ".npy"))
+
+    pngs = score_directories(folders["png_refs"], folders["png_preds"])
+    npys = score_directories(folders["npy_refs"], folders["mixed_preds"])
+
+    npy_names = [name.replace(".png", ".npy") for name in (UNIFORM_A, LAYERS_A)]
+    assert list(npys["scans"]) == npy_names
+    for png_name, npy_name in zip((UNIFORM_A, LAYERS_A), npy_names):
+        assert npys["scans"][npy_name] == pngs["scans"][png_name]
+    assert npys["medians"] == pngs["medians"] and npys["score"] == pngs["score"]
+    assert all(pngs["scans"][LAYERS_A][c] == pytest.approx(1.0, abs=1e-12) for c in COMPONENTS)
+    assert pngs["scans"][UNIFORM_A]["mean"] < 0.9
+
+
+def test_score_directories_pairs_npy_and_png_by_name(tmp_path):
+    ref_dir, pred_dir = tmp_path / "ref", tmp_path / "pred"
+    ref_dir.mkdir()
+    pred_dir.mkdir()
+    levels = _all_levels_image()
+    np.save(ref_dir / "a.npy", levels)
+    write_grey_png(ref_dir / "b.png", levels)
+    with pytest.raises(FileNotFoundError, match=r"pred: no prediction for a\.npy, b\.png$"):
+        score_directories(ref_dir, pred_dir)
+    # The same name first, else the other kind; a folder is no prediction.
+    (pred_dir / "a.npy").mkdir()
+    write_grey_png(pred_dir / "a.png", levels)
+    assert _prediction(pred_dir, "a.npy") == pred_dir / "a.png"
+    np.save(pred_dir / "b.npy", levels)
+    assert _prediction(pred_dir, "b.png") == pred_dir / "b.npy"
+    write_grey_png(pred_dir / "b.png", levels)
+    assert _prediction(pred_dir, "b.png") == pred_dir / "b.png"
+    (pred_dir / "a.npy").rmdir()
+    np.save(pred_dir / "a.npy", levels)
+    assert _prediction(pred_dir, "a.npy") == pred_dir / "a.npy"
+    assert _prediction(pred_dir, "c.png") is None
+    # One scan twice among the references is refused, naming the files.
+    np.save(ref_dir / "b.npy", levels)
+    with pytest.raises(ValueError, match=r"ref: the same reference scan twice: b\.npy and b\.png; keep one"):
         score_directories(ref_dir, pred_dir)
