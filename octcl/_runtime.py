@@ -1,15 +1,29 @@
 """OpenCL runtime: the implementations octcl registers, device choice, quiet builds, clear errors.
 
-Implementations. pyopencl's own ICD loader finds the PoCL it ships and the
-drivers the system registers in ``/etc/OpenCL/vendors``. Two more are
-registered by octcl when present, with nothing exported by the user:
-Intel's OpenCL CPU runtime from PyPI (``intel-opencl-rt``, installed by
-``scripts/setup.sh`` and the ``octcl[intel]`` extra on x86-64 Linux; it
-builds on CPUs whose LLVM target PoCL 3.0 does not know) and Debian's
-Oclgrind simulator (package ``oclgrind``, which registers no ICD of its
-own). :func:`register_runtimes` writes an ICD vendor folder naming them and
-every system ICD under the cache folder and points ``OCL_ICD_VENDORS`` at
-it before the first platform query, unless the user has set that variable.
+Implementations, per system. pyopencl's wheel brings the ICD loader that
+finds the drivers:
+
+- Linux: the PoCL of PyPI's ``pocl-binary-distribution`` (x86-64), and the
+  drivers the system registers in ``/etc/OpenCL/vendors`` (NVIDIA, ROCm,
+  Intel GPU, the distribution's PoCL). Two more are registered by octcl
+  when present, with nothing exported by the user: Intel's OpenCL CPU
+  runtime from PyPI (``intel-opencl-rt``, the ``octcl[intel]`` extra; it
+  builds on CPUs whose LLVM target PoCL 3.0 does not know) and Debian's
+  Oclgrind simulator (package ``oclgrind``, which registers no ICD of its
+  own). :func:`register_runtimes` writes an ICD vendor folder naming them
+  and every system ICD under the cache folder and points
+  ``OCL_ICD_VENDORS`` at it, unless the user has set that variable.
+- Windows: the drivers registered in the registry (NVIDIA's and AMD's GPU
+  drivers, Intel's graphics driver), and Intel's CPU runtime from PyPI (a
+  dependency there), which :func:`register_runtimes` names in
+  ``OCL_ICD_FILENAMES`` (read by the Khronos loader beside the registry)
+  with its folder put on ``PATH`` for the libraries it loads, unless the
+  user has set ``OCL_ICD_FILENAMES``.
+- macOS: Apple's OpenCL framework, which pyopencl links directly (its GPU
+  has no ``double``; octcl's kernels are float32 unless asked otherwise).
+
+Every registration happens before the first platform query: ``_cl()``
+calls it.
 
 Device choice. The ``device`` argument, else the ``OCTCL_DEVICE``
 environment variable, names a device:
@@ -27,21 +41,24 @@ and measured fastest (:data:`CPU_ORDER`). A simulator (Oclgrind) is used
 only when named. When no device builds, the error names each device, its
 compiler's own message and the fix.
 
-Builds print nothing on success: the compiler's log (vectoriser remarks,
-warnings) goes to the ``octcl`` logger at debug level (``octcl --debug``
-shows it); a failed build raises with its full log. Programs are built once
+Builds print nothing: the compiler's log (vectoriser remarks, warnings)
+and whatever a compiler writes to standard error itself go to the
+``octcl`` logger at debug level (``octcl --debug`` shows them); a failed
+build raises with its full log. Programs are built once
 per (context, source, options); PyOpenCL keeps the compiled binaries in its
 on-disk cache, so later runs skip the compiler.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
 import logging
 import os
 import re
+import sys
 import tempfile
 import warnings
 from dataclasses import dataclass
@@ -53,6 +70,10 @@ DEVICE_ENV = "OCTCL_DEVICE"
 CACHE_ENV = "OCTCL_CACHE_DIR"
 #: The ICD loader's variable: a folder of ``.icd`` files, each naming one implementation's library.
 ICD_VENDORS_ENV = "OCL_ICD_VENDORS"
+#: The Khronos ICD loader's variable on Windows: ICD libraries to load beside the registry's, ``;``-separated.
+ICD_FILENAMES_ENV = "OCL_ICD_FILENAMES"
+#: The library of Intel's OpenCL CPU runtime in its PyPI distribution, per system.
+INTEL_CPU_LIBRARY = {"win32": "intelocl64.dll", "linux": "libintelocl.so"}
 #: Where the system registers its OpenCL drivers.
 SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
 #: Debian's Oclgrind ICD library (the package installs no .icd file for it).
@@ -66,15 +87,32 @@ SIMULATORS = ("oclgrind",)
 PROBE_SOURCE = ("__kernel void probe(__global float *octcl_probe_data) "
                 "{ octcl_probe_data[get_global_id(0)] *= 2.0f; }")
 
-_FIX = ("fix: pip install 'octcl[intel]' (Intel's OpenCL CPU runtime, any x86-64 CPU, no root; "
-        "scripts/setup.sh installs it), or install a working OpenCL driver (the distribution's "
-        "pocl-opencl-icd, or your GPU vendor's)")
-_NO_PLATFORM_HELP = (
-    "no OpenCL platform found. octcl needs an OpenCL driver: on any CPU, "
-    "`pip install pocl-binary-distribution` (installed with octcl) provides PoCL; on x86-64, "
-    "`pip install 'octcl[intel]'` adds Intel's CPU runtime; "
-    "for GPUs install the vendor's OpenCL driver (NVIDIA, AMD ROCm, Intel)."
-)
+#: How to get a device that builds, per system (the end of the "no device builds" error).
+_FIX = {
+    "linux": ("fix: pip install 'octcl[intel]' (Intel's OpenCL CPU runtime, any x86-64 CPU, no root; "
+              "scripts/setup.sh installs it), or install a working OpenCL driver (the distribution's "
+              "pocl-opencl-icd, or your GPU vendor's)"),
+    "win32": ("fix: pip install intel-opencl-rt intel-cmplr-lib-rt (Intel's OpenCL CPU runtime, installed with "
+              "octcl on Windows), or install or update your GPU's driver (NVIDIA, AMD or Intel), which brings "
+              "its OpenCL"),
+    "darwin": "fix: Apple's OpenCL comes with macOS; choose another of its devices with --device (octcl devices)",
+}
+_NO_PLATFORM_HELP = {
+    "linux": ("no OpenCL platform found. octcl needs an OpenCL driver: on x86-64, PoCL "
+              "(`pip install pocl-binary-distribution`, installed with octcl) or Intel's CPU runtime "
+              "(`pip install 'octcl[intel]'`); on any CPU, the distribution's PoCL (`apt-get install "
+              "pocl-opencl-icd`); for GPUs the vendor's OpenCL driver (NVIDIA, AMD ROCm, Intel)."),
+    "win32": ("no OpenCL platform found. octcl needs an OpenCL driver: Intel's CPU runtime (`pip install "
+              "intel-opencl-rt intel-cmplr-lib-rt`, installed with octcl), or your GPU's driver (NVIDIA, AMD, "
+              "Intel), which registers its OpenCL."),
+    "darwin": "no OpenCL platform found: Apple's OpenCL framework, part of macOS, did not answer.",
+}
+
+
+def _for_this_system(texts: dict[str, str]) -> str:
+    """The text of ``texts`` for this system; Linux's for other POSIX systems (their loader works the same)."""
+    return texts.get(sys.platform, texts["linux"])
+
 
 logger = logging.getLogger("octcl")
 
@@ -91,13 +129,14 @@ def cache_dir() -> Path:
 
 
 def _intel_cpu_library() -> Path | None:
-    """``libintelocl.so`` of the installed ``intel-opencl-rt`` distribution, if any."""
+    """The library of the installed ``intel-opencl-rt`` distribution on this system, if any."""
+    name = INTEL_CPU_LIBRARY.get(sys.platform)
     try:
         files = metadata.distribution("intel-opencl-rt").files or []
     except metadata.PackageNotFoundError:
         return None
     for file in files:
-        if file.name == "libintelocl.so":
+        if file.name == name:
             path = Path(file.locate()).resolve()
             return path if path.exists() else None
     return None
@@ -105,25 +144,42 @@ def _intel_cpu_library() -> Path | None:
 
 def bundled_libraries() -> dict[str, Path]:
     """The ICD libraries octcl registers beside the system's: {implementation: library}."""
-    found = {"intel": _intel_cpu_library(), "oclgrind": OCLGRIND_LIBRARY if OCLGRIND_LIBRARY.exists() else None}
+    found = {"intel": _intel_cpu_library(),
+             "oclgrind": OCLGRIND_LIBRARY if sys.platform == "linux" and OCLGRIND_LIBRARY.exists() else None}
     return {name: path for name, path in found.items() if path is not None}
 
 
-def register_runtimes() -> Path | None:
-    """Point ``OCL_ICD_VENDORS`` at a vendor folder of the bundled and the system's ICDs.
+def register_runtimes() -> Path | str | None:
+    """Make the bundled implementations (:func:`bundled_libraries`) visible to the ICD loader.
 
-    Does nothing when the user has set ``OCL_ICD_VENDORS`` or no bundled
-    library is installed (the loader then reads the system's folder as
-    usual). The folder is named by its contents, so processes that share
-    the cache share it; it is written to a temporary name and renamed.
-    Must run before the first platform query: ``_cl()`` calls it. Returns
-    the folder, or None.
+    Linux: points ``OCL_ICD_VENDORS`` at a vendor folder of the bundled
+    and the system's ICDs (:func:`_register_vendor_folder`); returns the
+    folder. Windows: names the bundled libraries in ``OCL_ICD_FILENAMES``
+    and puts their folders first on ``PATH``; returns the variable's
+    value. Does nothing (returns None) where the user has set the variable
+    of that system, no bundled library is installed, or the system has no
+    ICD loader (macOS).
     """
-    if os.environ.get(ICD_VENDORS_ENV):
-        return None
     bundled = bundled_libraries()
-    if not bundled:
+    if sys.platform == "win32":
+        if os.environ.get(ICD_FILENAMES_ENV) or not bundled:
+            return None
+        libraries = [str(path) for path in bundled.values()]
+        folders = [str(path.parent) for path in bundled.values()]
+        os.environ["PATH"] = os.pathsep.join([*folders, os.environ.get("PATH", "")])
+        os.environ[ICD_FILENAMES_ENV] = ";".join(libraries)
+        return os.environ[ICD_FILENAMES_ENV]
+    if sys.platform == "darwin" or os.environ.get(ICD_VENDORS_ENV) or not bundled:
         return None
+    return _register_vendor_folder(bundled)
+
+
+def _register_vendor_folder(bundled: dict[str, Path]) -> Path | None:
+    """Point ``OCL_ICD_VENDORS`` at a folder of ``.icd`` files: ``bundled`` and the system's.
+
+    The folder is named by its contents, so processes that share the cache
+    share it; it is written to a temporary name and renamed.
+    """
     icds = {f"octcl-{name}.icd": f"{path}\n" for name, path in bundled.items()}
     if SYSTEM_VENDORS.is_dir():
         for icd in sorted(SYSTEM_VENDORS.glob("*.icd")):
@@ -193,6 +249,8 @@ def implementation(device) -> str:
         return "intel-gpu"
     if name == "Oclgrind":
         return "oclgrind"
+    if name == "Apple":
+        return "apple"
     return re.sub(r"\(.*?\)", "", (name.split() or ["unknown"])[0]).lower()
 
 
@@ -204,7 +262,21 @@ def describe(device) -> str:
             else next((name for name, bit in kinds if device.type & bit), "other"))
     return (f"{device.name.strip()} ({kind}, {implementation(device)}: {device.platform.name.strip()} "
             f"{device.driver_version.strip()}, {device.global_mem_size / 2**30:.1f} GiB, "
-            f"fp64 {'yes' if device.double_fp_config else 'no'})")
+            f"fp64 {'yes' if has_fp64(device) else 'no'})")
+
+
+def has_fp64(device) -> bool:
+    """Whether ``device`` computes in ``double``: it names ``cl_khr_fp64`` and reports a double config.
+
+    The extension is asked first: some drivers without it (Apple's GPUs)
+    answer the double-config query with an error.
+    """
+    if "cl_khr_fp64" not in device.extensions.split():
+        return False
+    try:
+        return bool(device.double_fp_config)
+    except _cl().Error:
+        return False
 
 
 @dataclass(frozen=True)
@@ -239,7 +311,7 @@ def _probe_in_process(key: str, device) -> Probe:
     cl = _cl()
     try:
         context, _ = context_for(device)
-        _quiet_build(cl.Program(context, PROBE_SOURCE), [], device)
+        _quiet_build(context, PROBE_SOURCE, [], device, binary_cache=False)
         result = Probe(True)
     except cl.Error as exc:
         result = Probe(False, str(exc))
@@ -286,7 +358,7 @@ def choose_device(choice: str | None = None):
     """The OpenCL device for ``choice`` (see the module docstring) and why: (device, reason)."""
     devices = list_devices()
     if not devices:
-        raise OpenCLUnavailableError(_NO_PLATFORM_HELP)
+        raise OpenCLUnavailableError(_for_this_system(_NO_PLATFORM_HELP))
     choice = choice if choice is not None else os.environ.get(DEVICE_ENV) or None
     text = None if choice is None else choice.strip().lower()
     if text is None or text in ("gpu", "cpu"):
@@ -300,7 +372,8 @@ def choose_device(choice: str | None = None):
             raise OpenCLUnavailableError(f"{what}. Devices: " + "; ".join(f"{key} {describe(d)}" for key, d in devices))
         failures = "; ".join(f"{key} {d.name.strip()} ({implementation(d)}): {probe(d).error}"
                              for key, d, _ in candidates)
-        raise OpenCLUnavailableError(f"no OpenCL device can build octcl's kernels: {failures}. {_FIX}")
+        raise OpenCLUnavailableError(f"no OpenCL device can build octcl's kernels: {failures}. "
+                                     f"{_for_this_system(_FIX)}")
     for key, device in devices:
         if text == key or text in implementation(device) or text in device.name.lower() \
                 or text in device.platform.name.lower():
@@ -344,28 +417,65 @@ def build(context, name: str, defines: tuple[tuple[str, object], ...], double: b
     """Build ``kernels/<name>.cl`` with ``-D`` defines; checks fp64 when asked for."""
     cl = _cl()
     device = context.devices[0]
-    if double and not device.double_fp_config:
+    if double and not has_fp64(device):
         raise OpenCLUnavailableError(
             f"{describe(device)} has no double precision (cl_khr_fp64); "
             "use float32 (the default) or another device")
     try:
-        return _quiet_build(cl.Program(context, kernel_source(name)), build_options(defines, double), device)
+        return _quiet_build(context, kernel_source(name), build_options(defines, double), device)
     except cl.RuntimeError as exc:
         raise OpenCLUnavailableError(
             f"kernels/{name}.cl failed to build on {describe(device)}:\n{exc}") from None
 
 
-def _quiet_build(program, options: list[str], device):
-    """Build ``program``; its compiler log goes to the debug log instead of a CompilerWarning on stderr.
+def _quiet_build(context, source: str, options: list[str], device, *, binary_cache: bool = True):
+    """Build ``source`` for ``device``; its compiler log goes to the debug log instead of a CompilerWarning on stderr.
 
     A failed build raises pyopencl's error, which holds the whole log.
+    ``binary_cache=False`` builds without pyopencl's binary cache and
+    returns the bare program (the probe, whose program is thrown away):
+    deciding whether to use that cache, pyopencl asks the device for an
+    NVIDIA-only attribute (``CL_DEVICE_COMPUTE_CAPABILITY_MAJOR_NV``), which
+    Oclgrind's API check reports as an error.
     """
     cl = _cl()
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _compiler_output_to_log():
         warnings.simplefilter("ignore", cl.CompilerWarning)
-        built = program.build(options=options)
+        if binary_cache:
+            built = cl.Program(context, source).build(options=options)
+        else:
+            built = cl._cl._Program(context, source)
+            built.build(" ".join(options).encode(), [device])
     if logger.isEnabledFor(logging.DEBUG):
         log = built.get_build_info(device, cl.program_build_info.LOG).strip()
         if log:
             logger.debug("OpenCL build log on %s (options %s):\n%s", describe(device), " ".join(options), log)
     return built
+
+
+@contextlib.contextmanager
+def _compiler_output_to_log():
+    """Send what a compiler writes straight to file descriptor 2 to the debug log instead of the terminal.
+
+    Some OpenCL compilers print to the process's standard error themselves
+    (Intel's and PoCL's "1 error generated.", Oclgrind's API reports), past
+    pyopencl's build log; for the build's duration, descriptor 2 is a
+    temporary file. A process without a usable descriptor 2 builds as is.
+    """
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text = sink.read().decode(errors="replace").strip()
+            if text:
+                logger.debug("OpenCL compiler output on standard error:\n%s", text)

@@ -451,11 +451,13 @@ def main(argv=None) -> int:
     expected = (PhantomError, ImageFormatError, ConfigError, UsageError, WeightsMissingError,
                 WeightsIntegrityError, OpenCLUnavailableError, OutputError, FileNotFoundError, ValueError,
                 ConnectionError)
-    if args.debug:  # the OpenCL compilers' logs and other diagnostics of octcl's logger
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
-        logging.getLogger("octcl").addHandler(handler)
-        logging.getLogger("octcl").setLevel(logging.DEBUG)
+    logger = logging.getLogger("octcl")
+    debug_handler, level = None, logger.level
+    if args.debug:  # the OpenCL compilers' logs and other diagnostics of octcl's logger, for this command only
+        debug_handler = logging.StreamHandler(sys.stderr)
+        debug_handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+        logger.addHandler(debug_handler)
+        logger.setLevel(logging.DEBUG)
     try:
         return args.handler(args)
     except expected as exc:
@@ -470,6 +472,10 @@ def main(argv=None) -> int:
         print(f"octcl {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)}"
               + ("" if args.debug else "; rerun with --debug for the traceback"), file=sys.stderr)
         return 1
+    finally:  # the handler writes to this command's stderr, which a caller of main() may close after it
+        if debug_handler is not None:
+            logger.removeHandler(debug_handler)
+            logger.setLevel(level)
 
 
 def _one_line(exc: BaseException) -> str:

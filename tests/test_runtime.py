@@ -1,9 +1,15 @@
 """OpenCL runtime: registered implementations, the probing device choice, quiet builds.
 
-A device whose compiler fails is simulated on any machine by breaking the
-build of that device's implementation: a define that turns the probe
-program's source into a syntax error goes through the real build, and the
-real compiler rejects it with its own message.
+The rule under test is "a device is a candidate only if it builds", on any
+machine: one where every implementation builds, and one where PyPI's PoCL
+cannot (AMD Zen 5, whose CPU LLVM 14 does not know). Two failures are made
+on any machine:
+
+- a compiler that rejects the source: a define that turns the probe
+  program's source into a syntax error goes through the real build, and the
+  real compiler rejects it with its own message;
+- PoCL on Zen 5: the build of every PoCL device raises pyopencl's own error
+  carrying the log PoCL 3.0 gives there (:data:`POCL_ZEN5_LOG`).
 """
 
 import logging
@@ -19,6 +25,17 @@ from octcl._runtime import (OpenCLUnavailableError, build, choose_device, contex
                             list_devices, probe)
 from octcl.cli import main
 
+#: What PoCL 3.0 (PyPI's pocl-binary-distribution, LLVM 14) logs for any build on an AMD Zen 5 CPU: LLVM 14
+#: names the host CPU "generic", which its x86 back end does not take as a target.
+POCL_ZEN5_LOG = ("error: unknown target CPU 'generic'\n"
+                 "note: valid target CPU values are: nocona, core2, penryn, bonnell, atom, silvermont, slm, "
+                 "goldmont, goldmont-plus, tremont, nehalem, corei7, westmere, sandybridge, corei7-avx, "
+                 "ivybridge, core-avx-i, haswell, core-avx2, broadwell, skylake, skylake-avx512, skx, "
+                 "cascadelake, cooperlake, cannonlake, icelake-client, rocketlake, icelake-server, tigerlake, "
+                 "sapphirerapids, alderlake, knl, knm, k8, athlon64, athlon-fx, opteron, k8-sse3, athlon64-sse3, "
+                 "opteron-sse3, amdfam10, barcelona, btver1, btver2, bdver1, bdver2, bdver3, bdver4, znver1, "
+                 "znver2, znver3, x86-64, x86-64-v2, x86-64-v3, x86-64-v4")
+
 
 @pytest.fixture
 def fresh_probes(tmp_path, monkeypatch):
@@ -29,62 +46,130 @@ def fresh_probes(tmp_path, monkeypatch):
     _runtime._probe_in_process.cache_clear()
 
 
+def forget_probes():
+    """Clear the probe cache, in memory and on disk, so that the next probes ask the (changed) builds."""
+    _runtime._probe_in_process.cache_clear()
+    for path in (_runtime.cache_dir() / "probes").glob("*.json"):
+        path.unlink()
+
+
 def break_builds_of(monkeypatch, broken: set[str]):
     """Builds on devices of the implementations in ``broken`` fail in their compiler: the probe
     program's ``octcl_probe_data`` is defined as ``)``, a syntax error there."""
     real_build = _runtime._quiet_build
 
-    def build_breaking(program, options, device):
+    def build_breaking(context, source, options, device, **kwargs):
         if implementation(device) in broken:
             options = [*options, "-Doctcl_probe_data=)"]
-        return real_build(program, options, device)
+        return real_build(context, source, options, device, **kwargs)
 
     monkeypatch.setattr(_runtime, "_quiet_build", build_breaking)
+    forget_probes()
+
+
+def pocl_as_on_zen5(monkeypatch):
+    """Every PoCL build fails as PyPI's PoCL 3.0 fails on an AMD Zen 5 CPU (:data:`POCL_ZEN5_LOG`)."""
+    real_build = _runtime._quiet_build
+    cl = _runtime._cl()
+
+    def build_as_on_zen5(context, source, options, device, **kwargs):
+        if implementation(device) == "pocl":
+            log = (f"clBuildProgram failed: BUILD_PROGRAM_FAILURE\n\nBuild on {device!r}:\n\n{POCL_ZEN5_LOG}\n"
+                   f"(options: {' '.join(options)})")
+            raise cl.RuntimeError(cl._cl._ErrorRecord("clBuildProgram", cl.status_code.BUILD_PROGRAM_FAILURE, log))
+        return real_build(context, source, options, device, **kwargs)
+
+    monkeypatch.setattr(_runtime, "_quiet_build", build_as_on_zen5)
+    forget_probes()
 
 
 def ranked_keys(wanted=None):
     return [key for key, _, _ in _runtime._ranked(list_devices(), wanted)]
 
 
-def test_every_device_here_builds_the_probe_and_one_is_chosen(fresh_probes):
+def expected_choice():
+    """The device the rule picks, by asking each device's probe in octcl's order; None if none builds."""
+    devices = dict(list_devices())
+    return next((devices[key] for key in ranked_keys() if probe(devices[key]).builds), None)
+
+
+def assert_no_device_builds_error(message: str):
+    """The error when no device builds: one line, each candidate named with its compiler's error, the fix."""
+    assert "\n" not in message and message.startswith("no OpenCL device can build octcl's kernels")
+    assert "octcl[intel]" in message and "pocl-opencl-icd" in message
+    for key in ranked_keys():
+        assert f"{key} " in message
+
+
+def test_every_device_builds_or_says_why_in_one_line_and_the_chosen_one_builds(fresh_probes):
     devices = list_devices()
-    assert devices and all(probe(device).builds for _, device in devices)
+    assert devices
+    for key, device in devices:
+        result = probe(device)
+        assert result.builds or (result.error and "\n" not in result.error), (key, result)
     device, reason = choose_device()
-    assert implementation(device) not in _runtime.SIMULATORS and reason
+    assert probe(device).builds and device == expected_choice() and reason
+    assert implementation(device) not in _runtime.SIMULATORS
     assert list(fresh_probes.glob("probes/*.json")), "probe results are remembered on disk"
 
 
 def test_a_device_whose_builds_fail_is_passed_over(fresh_probes, monkeypatch):
-    """The preferred implementation's compiler fails: the next device that builds is chosen."""
-    first = dict(list_devices())[ranked_keys()[0]]
+    """The preferred implementation's compiler fails: the next device that builds is chosen, or, where
+    none builds, the one-line error."""
+    first = expected_choice()
     break_builds_of(monkeypatch, {implementation(first)})
     result = probe(first)
     assert not result.builds and "error" in result.error.lower() and "\n" not in result.error
-    others = [key for key in ranked_keys() if implementation(dict(list_devices())[key]) != implementation(first)]
-    if not others:
-        pytest.skip(f"only {implementation(first)} is installed: nothing to fall back on "
-                    "(pip install 'octcl[intel]')")
-    device, reason = choose_device()
-    assert dict(list_devices())[others[0]] == device and reason
+    following = expected_choice()
+    if following is None:
+        with pytest.raises(OpenCLUnavailableError) as raised:
+            choose_device()
+        assert_no_device_builds_error(str(raised.value))
+    else:
+        assert implementation(following) != implementation(first)
+        device, reason = choose_device()
+        assert device == following and reason
 
 
-def test_no_device_builds_is_one_line_naming_devices_error_and_fix(fresh_probes, monkeypatch, capsys, tmp_path):
-    break_builds_of(monkeypatch, {implementation(device) for _, device in list_devices()})
+@pytest.mark.parametrize("also_broken", [(), ("intel",)], ids=["zen5", "zen5_without_intel"])
+def test_pocl_failing_as_on_zen5_passes_the_choice_on(fresh_probes, monkeypatch, capfd, also_broken):
+    """PoCL's real Zen 5 error: another device that builds is chosen and ``octcl devices`` names PoCL's error;
+    where none is left, one line names every device and its error."""
+    pocl_as_on_zen5(monkeypatch)
+    break_builds_of(monkeypatch, set(also_broken))
+    pocl = [(key, device) for key, device in list_devices() if implementation(device) == "pocl"]
+    for _, device in pocl:
+        assert probe(device).error == "error: unknown target CPU 'generic'"
+    following = expected_choice()
+    if following is None:
+        with pytest.raises(OpenCLUnavailableError) as raised:
+            choose_device()
+        assert_no_device_builds_error(str(raised.value))
+        assert "unknown target CPU 'generic'" in str(raised.value)
+        assert main(["devices"]) == 2
+    else:
+        assert implementation(following) != "pocl" and choose_device()[0] == following
+        assert main(["devices"]) == 0
+    listing = capfd.readouterr().out
+    for key, _ in pocl:
+        assert f"{key} " in listing and "does not build (error: unknown target CPU 'generic')" in listing
+
+
+def test_no_device_builds_is_one_line_naming_devices_error_and_fix(fresh_probes, monkeypatch, capfd, tmp_path):
+    break_builds_of(monkeypatch, {implementation(device) for _, device in list_devices()} - set(_runtime.SIMULATORS))
     with pytest.raises(OpenCLUnavailableError) as raised:
         choose_device()
     message = str(raised.value)
-    assert "\n" not in message and "octcl[intel]" in message
-    for key in ranked_keys():
-        assert f"{key} " in message
+    assert_no_device_builds_error(message)
     assert "expected" in message.lower()  # the compiler's own words about the broken source
 
     phantom = tmp_path / "one.txt"
     phantom.write_text("0 0 100 1\n")
     status = main(["render", str(phantom), "-o", str(tmp_path / "one.png")])
-    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    errors = [line for line in capfd.readouterr().err.splitlines() if "error" in line]
     assert status == 2 and len(errors) == 1 and errors[0].startswith("octcl render: error: no OpenCL device can build")
     status = main(["devices"])
-    captured = capsys.readouterr()
+    captured = capfd.readouterr()
     assert status == 2 and "does not build" in captured.out and "octcl[intel]" in captured.err
 
 
@@ -93,7 +178,7 @@ def test_probe_results_are_remembered_per_device(fresh_probes, monkeypatch):
     assert probe(device).builds
     _runtime._probe_in_process.cache_clear()
 
-    def no_compiler(*_):
+    def no_compiler(*_, **__):
         raise AssertionError("the compiler was asked again")
 
     monkeypatch.setattr(_runtime, "_quiet_build", no_compiler)
@@ -130,7 +215,7 @@ def test_successful_builds_print_nothing_and_log_under_debug(caplog):
               "__kernel void k(__global int *x) { x[0] = 1; }")
     with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.DEBUG, logger="octcl"):
         warnings.simplefilter("always")
-        _runtime._quiet_build(cl.Program(context, source), [], device)
+        _runtime._quiet_build(context, source, [], device)
     assert not [w for w in caught if issubclass(w.category, cl.CompilerWarning)]
     assert "octcl test remark" in caplog.text
 
@@ -176,3 +261,15 @@ def test_intels_runtime_is_found_with_nothing_exported(tmp_path):
                             env=env, timeout=120)
     assert result.returncode == 0 and result.stderr == ""
     assert "intel: Intel(R) OpenCL" in result.stdout and "pocl:" in result.stdout
+
+
+def test_listing_devices_leaves_no_oclgrind_report(tmp_path):
+    """``octcl devices`` probes every device, Oclgrind too, under Oclgrind's API check (tests/conftest.py sets
+    it): octcl asks each device only what it supports, so standard error stays empty."""
+    if not any(implementation(device) == "oclgrind" for _, device in list_devices()):
+        pytest.skip("Oclgrind is not installed: apt-get install oclgrind")
+    env = {**_runtime.os.environ, _runtime.CACHE_ENV: str(tmp_path)}  # a fresh probe cache: every probe builds
+    result = subprocess.run([sys.executable, "-m", "octcl.cli", "devices"], capture_output=True, text=True,
+                            env=env, timeout=120)
+    assert result.returncode == 0 and "oclgrind:" in result.stdout and "builds" in result.stdout
+    assert result.stderr == ""
