@@ -47,7 +47,6 @@ import dataclasses
 import json
 import math
 import os
-import resource
 import sys
 import threading
 import time
@@ -281,7 +280,17 @@ class _ProgressReporter:
 
 
 def peak_memory_mib() -> float:
-    """Peak resident set size of this process in MiB (ru_maxrss: KiB on Linux, bytes on macOS)."""
+    """Peak resident memory of this process in MiB.
+
+    POSIX: ``ru_maxrss`` (KiB on Linux, bytes on macOS). Windows, which has
+    no ``resource`` module: the peak working set, through psutil.
+    """
+    if sys.platform == "win32":
+        import psutil
+
+        return psutil.Process().memory_info().peak_wset / 2**20
+    import resource
+
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024
 

@@ -185,7 +185,10 @@ def atomic_write(path, mode="wb"):
     except OSError as exc:
         raise _output_error(path, exc) from None
     try:
-        with os.fdopen(fd, mode) as handle:
+        # Text is UTF-8 with "\n" line ends on every system (Windows' locale encoding cannot write every
+        # character of a report), so an output has the same bytes wherever it is written.
+        text = {} if "b" in mode else {"encoding": "utf-8", "newline": "\n"}
+        with os.fdopen(fd, mode, **text) as handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())

@@ -21,7 +21,7 @@ forward render and one adjoint do in the work-group variant
 
 Time per pass = max(bytes / memory bandwidth, flops / FP32 rate,
 special ops / special-function rate, latency): a roofline over the whole
-GPU (512 work-groups of 128 work-items against 132 SMs or 104 CUs, all
+GPU (512 work-groups of 128 work-items against 132 SMs, 104 CUs or 28 SMs, all
 resident at the compiler-reported occupancy), with a latency floor: the
 longest list's ⌈L/128⌉ chunks one after another, at an assumed
 CHUNK_CYCLES each (not measured: no GPU was at hand). What a run on a GPU
@@ -38,7 +38,10 @@ Peak rates are the vendors' datasheet figures (boost clock):
   132 SMs × 16 special-function results per clock × 1.98 GHz;
 - AMD Instinct MI250, one of its two GCDs (OpenCL shows each as a device):
   1.64 TB/s HBM2e, 22.6 TFLOP/s FP32 vector, 104 CUs × 16 transcendental
-  results per clock (quarter rate) × 1.7 GHz.
+  results per clock (quarter rate) × 1.7 GHz;
+- NVIDIA GeForce RTX 3060 12 GB (GA106, the SynthOCT 2026 organisers'
+  machine): 360 GB/s GDDR6, 12.7 TFLOP/s FP32, 28 SMs × 16
+  special-function results per clock × 1.777 GHz, PCIe 4.0 x16.
 
     python scripts/gpu_estimate.py
 """
@@ -58,6 +61,8 @@ GPUS = {
                          "clock": 1.98e9},
     "AMD MI250 (one GCD)": {"bandwidth": 1.64e12, "flops": 22.6e12, "special": 104 * 16 * 1.7e9, "pcie": 25e9,
                             "clock": 1.7e9},
+    "NVIDIA RTX 3060 12 GB": {"bandwidth": 360e9, "flops": 12.7e12, "special": 28 * 16 * 1.777e9, "pcie": 25e9,
+                              "clock": 1.777e9},
 }
 SCENES = {"layers_A": lambda: Phantom.baseline("layers", 42), "skin_1": lambda: Phantom.skin(1)}
 FLOPS_PER_PAIR = 30

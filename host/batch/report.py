@@ -142,7 +142,7 @@ def _csv_text(rows: dict[str, dict]) -> str:
 
 def read_summary_csv(path) -> list[dict]:
     """summary.csv's rows as dicts, numbers as floats (None where empty)."""
-    with open(path, newline="") as handle:
+    with open(path, newline="", encoding="utf-8") as handle:
         return [{column: (float(value) if value else None) if column in NUMERIC else value
                  for column, value in row.items()} for row in csv.DictReader(handle)]
 

@@ -131,7 +131,7 @@ def completed_report(scan: Scan, target_sha256: str, settings: dict) -> dict | N
     recorded (its SHA-256).
     """
     try:
-        report = json.loads(scan.output("report").read_text())
+        report = json.loads(scan.output("report").read_text(encoding="utf-8"))
         record = report["batch"]
         if record["target_sha256"] != target_sha256 or any(record.get(k) != v for k, v in settings.items()):
             return None

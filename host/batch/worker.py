@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import tempfile
 import time
 from pathlib import Path
@@ -89,14 +90,14 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
             return {"name": name, "error": str(exc)}
         cpu_s = time.process_time() - cpu_started
         phantom = phantom_path.read_bytes()
-        report = json.loads(report_path.read_text())
+        report = json.loads(report_path.read_text(encoding="utf-8"))
         rendering = render(Phantom.load(phantom_path, config, y_limit_um=CONTRACT_Y_LIMIT_UM), config)
     report["target"] = name
     title = f"{name}: score {result.score:.5f} after {result.seconds['total']:.0f} s"
     return {"name": name, "phantom": phantom, "report": report,
             "panel": comparison_panel(target, rendering.levels, title),
             "plot": score_plot({name: report["trace"]}, name),
-            "cpu_s": cpu_s, "wall_s": time.monotonic() - started, "worker": f"{os.uname().nodename}:{os.getpid()}"}
+            "cpu_s": cpu_s, "wall_s": time.monotonic() - started, "worker": f"{platform.node()}:{os.getpid()}"}
 
 
 __all__ = ["invert_scan"]
