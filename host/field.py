@@ -244,6 +244,16 @@ class FieldOperator:
         spectrum = torch.fft.fft2(field, s=(nz, self.padded_columns))
         return torch.fft.ifft2(spectrum * transfer)[:, :nx]
 
+    def adjoint(self, a_scans: np.ndarray) -> np.ndarray:
+        """Hᴴ: the adjoint of :meth:`apply` (⟨H·F, A⟩ = ⟨F, Hᴴ·A⟩), complex128 (Nz, Nx).
+
+        The crop's adjoint pads the columns with zeros; the 2-D circular
+        convolution's is the one with the conjugate transfer function.
+        """
+        nz, nx = self.config.shape
+        spectrum = np.fft.fft2(a_scans, s=(nz, self.padded_columns))
+        return np.fft.ifft2(spectrum * np.conj(self.transfer))[:, :nx]
+
     def pseudo_inverse(self, a_scans: np.ndarray, regularisation: float = REGULARISATION) -> np.ndarray:
         """Tikhonov-regularised inverse: the F minimising ‖A(F) − a_scans‖² + λ·‖F‖².
 

@@ -53,11 +53,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 
 from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
+from octcl.render import render
 
+from .ceiling import WRITABLE, error_diffused, measure_ceiling
+from .field import target_levels
 from .refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, check_target_score, refine
 from .target import check_target, read_target, target_scan
 
@@ -80,8 +84,14 @@ FIELD_BUDGET_CAP_S = 45.0
 LINEAR_FIELD_BUDGET_FRACTION = 0.5
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
 #: over them); in the linear regime those of the first display fit, the
-#: second has half as many (:func:`octcl.host.linear.linear_start`).
-FIELD_ITERATIONS = {"physical": 1500, "linear": 300}
+#: second, run only where the first does not render every aimed level, has
+#: half as many (:func:`octcl.host.linear.linear_start`). Linear: with the
+#: hinge fit (:func:`octcl.host.linear.fit_levels`) after the projections,
+#: 300, 150 and 75 steps all put every pixel of the nine development scans
+#: at its aimed level and gave the same scores; 150 was the fastest in the
+#: median (6.0 s for the whole inversion against 6.9 s and 5.6 s, but 75
+#: left the hinge fit up to 6 s more on two scans; docs/benchmarks.md).
+FIELD_ITERATIONS = {"physical": 1500, "linear": 150}
 #: Stage 3's schedule in the linear regime: short steps while they gain.
 #: From a linear start the physical regime's schedule fell at once (its
 #: first 20 steps took Uniform B from 0.99964 to 0.9979; steps 4× shorter,
@@ -142,7 +152,7 @@ class InvertResult:
         Stage 3 was cut short by the time budget.
     stop_reason : str
         What ended stage 3 (:attr:`octcl.host.refine.RefineResult.stop_reason`):
-        ``schedule``, ``converged``, ``target score`` or ``deadline``.
+        ``schedule``, ``converged``, ``target score``, ``ceiling`` or ``deadline``.
     falls : list of int
         Stage-3 steps after which the main run fell and went back to the best
         phantom at lower learning rates
@@ -171,6 +181,15 @@ class InvertResult:
         learning rate then followed the clock) or the deadline ended stage 3.
         The thread count, timed or given, changes no bit (measured at 1 and
         2 threads).
+    ceiling : dict
+        What the target allows, measured apart from the inversion
+        (:class:`octcl.host.ceiling.Ceiling`): ``writable_share``,
+        ``nearest_score``, ``diffused_score``.
+    exact_share : float
+        Share of pixels the written phantom renders at the target's level.
+    avoidable_share : float
+        Share of pixels at a writable level of the target that the phantom
+        renders at another: what a better phantom could still gain.
     """
 
     target: str
@@ -193,6 +212,9 @@ class InvertResult:
     threads: int | None
     reproduce: str
     reproducible: bool
+    ceiling: dict
+    exact_share: float
+    avoidable_share: float
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -385,6 +407,7 @@ class _Start:
     field_loss: float | None     # stage 1's last loss (physical regime)
     seconds: dict                # {"field": s, "decode": s}
     candidates: list | None = None  # the linear regime's stage-1 candidates (LinearStart.candidates)
+    aim: np.ndarray | None = None   # the levels stage 1 aimed at (linear regime), for stage 3's stop
 
 
 def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell, exact_score) -> _Start:
@@ -411,16 +434,17 @@ def _linear_start(scan, config, schedule, iterations, budget_s, threads, seed, s
     """
     from .linear import ENERGY_FLOOR_PCT, decode_exact, linear_start
 
+    aim = error_diffused(target_levels(scan, config))
     found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, adam_steps=iterations,
                          time_budget_s=budget_s, threads=threads,
-                         progress=lambda taken, planned: step(taken, planned, None))
+                         progress=lambda taken, planned: step(taken, planned, None), aim=aim)
     tell("decode", 0, 1)
     start = time.monotonic()
     phantom = decode_exact(found.field, config)
     schedule = dataclasses.replace(schedule, min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
     # field_iterations: the first candidate's length, from which the others follow (the reproduce options).
     return _Start(phantom, schedule, iterations, found.clock_steps, found.threads, None,
-                  {"field": found.seconds, "decode": time.monotonic() - start}, found.candidates)
+                  {"field": found.seconds, "decode": time.monotonic() - start}, found.candidates, aim)
 
 
 _STARTS = {"linear": _linear_start, "physical": _physical_start}
@@ -579,7 +603,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
                         kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score,
                         on_improvement=lambda improved, components: writer.offer(improved),
                         ceiling=ceiling.ceiling if fixed else None, threads=threads,
-                        target_score=target_score)
+                        target_score=target_score, aim=first.aim)
     except TimeBudgetExceeded as exc:
         if writer is not None:
             writer.close()
@@ -596,6 +620,11 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     trace += [{**entry, "time_s": entry["time_s"] + offset} for entry in result.trace]
     seconds["total"] = elapsed()
     tell("done", result.iterations, schedule.total_iterations, done=True)
+    # After the last write, so that it takes nothing from the budget: the ceiling of the target (up to two
+    # exact scores, none for a target the scanner could have written) and where the phantom stands under it.
+    levels = target_levels(target_scan(target), config)
+    ceiling = measure_ceiling(levels, lambda image: exact_score(image)["mean"])
+    rendered = render(result.phantom, config).levels
 
     outcome = InvertResult(
         target=name, output=str(output_path), score=result.components["mean"],
@@ -608,7 +637,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         reproduce=f"--regime {regime} --seed {seed} --iterations {result.iterations} "
                   f"--field-iterations {first.field_iterations} "
                   f"--threads {FIXED_THREADS if threads is None else threads}",
-        reproducible=first.clock_steps == 0 and not result.stopped_by_deadline)
+        reproducible=first.clock_steps == 0 and not result.stopped_by_deadline,
+        ceiling=ceiling.as_dict(), exact_share=float(np.mean(rendered == levels)),
+        avoidable_share=float(np.mean(WRITABLE[levels] & (rendered != levels))))
     if report_path is not None:
         contents = {
             **outcome.as_dict(),

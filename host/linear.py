@@ -18,7 +18,11 @@ reference scanner, shadowing included, and compares the levels with those
 of the field.
 
 Stage 1, :func:`linear_start`: display fits (the physical regime's stage
-1, shortened), each followed by :func:`retrieve_field`, the best kept.
+1, shortened), each followed by :func:`retrieve_field` and :func:`fit_levels`,
+the best kept; once one renders every pixel at its aimed level, the others
+are left out. The aimed levels are the target's own where the scanner can
+write them, one level up or down by error diffusion where it cannot
+(:mod:`octcl.host.ceiling`).
 
 Projections, :func:`retrieve_field`. In this regime the scanner is the linear
 operator A = H·F of :class:`octcl.host.field.FieldOperator` (a lateral
@@ -99,7 +103,7 @@ import numpy as np
 from .. import _reference as ref
 from .._io import GREY_LUT
 from ..config import DEFAULT_CONFIG, ScannerConfig
-from ..phantom import Phantom
+from ..phantom import SIGNIFICANT_DIGITS, Phantom, _round_significant
 from ..render import Rendering
 from .field import FieldOperator, cell_depths_um, target_levels, target_magnitude
 
@@ -202,7 +206,7 @@ class LinearFit:
 
 def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = RETRIEVAL_ITERATIONS,
                    time_budget_s: float | None = None, progress=None,
-                   initial: np.ndarray | None = None) -> LinearFit:
+                   initial: np.ndarray | None = None, aim: np.ndarray | None = None) -> LinearFit:
     """A field F whose linear rendering has the target's levels: accelerated projections (module docstring).
 
     Parameters
@@ -220,6 +224,10 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
     initial : ndarray of complex, (Nz, Nx), optional
         The start; default the regularised inverse of the de-logged target
         with zero phase.
+    aim : ndarray of uint8, (Nz, Nx), optional
+        The levels whose intervals the projections aim at (and that
+        ``identical`` counts); default the target's own.
+        :func:`octcl.host.ceiling.error_diffused` gives writable ones.
 
     Returns
     -------
@@ -230,7 +238,8 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
         raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
     levels = target_levels(target, config)
     operator = FieldOperator(config)
-    lower, upper = level_magnitude_bounds(levels)
+    aimed = levels if aim is None else target_levels(aim, config)
+    lower, upper = level_magnitude_bounds(aimed)
     if initial is None:
         initial = operator.pseudo_inverse(target_magnitude(levels).astype(np.complex128))
     field = np.asarray(initial, dtype=np.complex128) / np.abs(operator.apply(initial)).max()
@@ -254,7 +263,116 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
     scale = np.abs(a_scans).max()
     field, a_scans = field / scale, a_scans / scale
     rendering = Rendering.from_a_scans(a_scans)
-    return LinearFit(field=field, display=rendering.display, identical=float(np.mean(rendering.levels == levels)),
+    return LinearFit(field=field, display=rendering.display, identical=float(np.mean(rendering.levels == aimed)),
+                     iterations=taken, seconds=time.perf_counter() - start, clock_steps=clock_steps)
+
+
+# -------------------------------------------------------------- intervals
+#: L-BFGS iterations of :func:`fit_levels`.
+LEVEL_FIT_ITERATIONS = 200
+#: Corrections L-BFGS keeps (scipy's ``maxcor``).
+LEVEL_FIT_MEMORY = 20
+#: :func:`fit_levels` compares the rendering's levels with the aimed ones every this many iterations.
+LEVEL_CHECK_EVERY = 10
+
+
+def _anchored_bounds(aim: np.ndarray, magnitude: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`level_magnitude_bounds` of ``aim`` with one pixel pinned at |A| = 1: of the pixels at the highest
+    aimed level, the brightest in ``magnitude``. Every upper bound is ≤ 1, so a field inside these bounds
+    has max|A| = 1 exactly and renders each pixel at the level its bounds say: the display's division by
+    its own maximum is then part of the constraints."""
+    lower, upper = level_magnitude_bounds(aim, margin)
+    anchor = np.unravel_index(np.argmax(np.where(aim == aim.max(), magnitude, -1.0)), aim.shape)
+    lower[anchor] = upper[anchor] = 1.0
+    return lower, upper
+
+
+def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
+               iterations: int = LEVEL_FIT_ITERATIONS, margin: float = INTERVAL_MARGIN,
+               time_budget_s: float | None = None) -> LinearFit:
+    """Move a field until every pixel of its rendering lies in its aimed level's interval: L-BFGS on a hinge.
+
+    Minimises ½·Σ_p dist(|A_p|, [l_p, u_p])² over F, A = H·F
+    (:class:`~octcl.host.field.FieldOperator`), with the bounds of
+    :func:`_anchored_bounds` (one pixel pinned at |A| = 1, so that the
+    display's normalisation holds exactly at zero loss). With r_p = A_p −
+    P_p(A_p), P_p the projection of A_p onto its annulus (the phase kept),
+    the gradient with respect to (Re F, Im F) is (Re, Im) of Hᴴ·r: two FFT
+    pairs an evaluation. L-BFGS (Nocedal 1980; SciPy's L-BFGS-B) reaches
+    where the projections of :func:`retrieve_field` stall: they fix each
+    pixel's magnitude in turn through a regularised inverse, which leaves
+    dark pixels one level bright where their neighbours' sidelobes land
+    (Uniform A: 93.2 % of pixels on their level after the projections,
+    99.998 % after 100 iterations here; ``scripts/bench_linear.py``).
+
+    Parameters
+    ----------
+    field : ndarray of complex, (Nz, Nx)
+        The start (a retrieved field).
+    aim : ndarray of uint8, (Nz, Nx)
+        The levels aimed at, each one the scanner writes
+        (:func:`octcl.host.ceiling.error_diffused`).
+    config : ScannerConfig
+    iterations : int
+        L-BFGS iterations at most (≥ 1); it stops sooner once every pixel
+        renders at its aimed level (checked every :data:`LEVEL_CHECK_EVERY`).
+    margin : float
+        :func:`level_magnitude_bounds`' margin.
+    time_budget_s : float, optional
+        Stop after the first iteration that ends past this many seconds.
+
+    Returns
+    -------
+    LinearFit
+        ``identical`` counts pixels at their aimed level.
+    """
+    import scipy.optimize
+
+    start = time.perf_counter()
+    if not (isinstance(iterations, int) and iterations >= 1):
+        raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
+    aim = target_levels(aim, config)
+    operator = FieldOperator(config)
+    field = np.asarray(field, dtype=np.complex128)
+    field = field / np.abs(operator.apply(field)).max()
+    lower, upper = _anchored_bounds(aim, np.abs(operator.apply(field)), margin)
+    shape, size = field.shape, field.size
+
+    def loss_and_gradient(vector):
+        a_scans = operator.apply(vector[:size].reshape(shape) + 1j * vector[size:].reshape(shape))
+        magnitude = np.abs(a_scans)
+        clipped = np.clip(magnitude, lower, upper)
+        residual = a_scans - np.where(magnitude > 0, a_scans * (clipped / np.where(magnitude > 0, magnitude, 1.0)),
+                                      clipped)
+        gradient = operator.adjoint(residual)
+        return 0.5 * float(np.vdot(residual, residual).real), np.concatenate([gradient.real.ravel(),
+                                                                             gradient.imag.ravel()])
+
+    clock_steps, taken = 0, 0
+
+    def stop_when_done(intermediate_result):
+        """Every :data:`LEVEL_CHECK_EVERY` iterations: stop once every pixel renders at its aimed level."""
+        nonlocal clock_steps, taken
+        taken += 1
+        if time_budget_s is not None and time.perf_counter() - start > time_budget_s:
+            clock_steps = 1
+            raise StopIteration
+        if taken % LEVEL_CHECK_EVERY == 0:
+            vector = intermediate_result.x
+            a_scans = operator.apply(vector[:size].reshape(shape) + 1j * vector[size:].reshape(shape))
+            if np.array_equal(Rendering.from_a_scans(a_scans).levels, aim):
+                raise StopIteration
+
+    found = scipy.optimize.minimize(loss_and_gradient, np.concatenate([field.real.ravel(), field.imag.ravel()]),
+                                    jac=True, method="L-BFGS-B", callback=stop_when_done,
+                                    options={"maxiter": iterations, "maxcor": LEVEL_FIT_MEMORY, "ftol": 0.0,
+                                             "gtol": 0.0})
+    field = found.x[:size].reshape(shape) + 1j * found.x[size:].reshape(shape)
+    a_scans = operator.apply(field)
+    scale = np.abs(a_scans).max()
+    field, a_scans = field / scale, a_scans / scale
+    rendering = Rendering.from_a_scans(a_scans)
+    return LinearFit(field=field, display=rendering.display, identical=float(np.mean(rendering.levels == aim)),
                      iterations=taken, seconds=time.perf_counter() - start, clock_steps=clock_steps)
 
 
@@ -291,7 +409,8 @@ class LinearStart:
 
 def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_steps: int = 300,
                  lengths: tuple = START_LENGTHS, projections: int = START_PROJECTIONS,
-                 time_budget_s: float | None = None, threads: int | None = None, progress=None) -> LinearStart:
+                 time_budget_s: float | None = None, threads: int | None = None, progress=None,
+                 aim: np.ndarray | None = None, level_iterations: int = LEVEL_FIT_ITERATIONS) -> LinearStart:
     """Stage 1 of the linear regime: display fits of several lengths, each then projected; the best by score.
 
     Each candidate is :func:`octcl.host.field.fit_field` (Adam on the
@@ -327,13 +446,17 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_ste
     projections : int
         Projection steps after each fit.
     time_budget_s : float, optional
-        The first candidate gets all of it (half for the fit, half for the
-        projections); a later one runs only if its steps, at the first
-        candidate's measured pace, end within it.
+        The first candidate gets all of it (half for the fit, a third of the
+        rest for the projections, the rest for the hinge fit); a later one
+        runs only if its steps, at the first candidate's measured pace, end
+        within it.
     threads : int, optional
         torch threads of the fits (:func:`octcl.host.field.fit_field`).
     progress : callable, optional
         ``progress(step, steps)`` over all candidates' steps.
+    aim : ndarray of uint8, optional
+        The levels the projections aim at (:func:`retrieve_field`); the
+        candidates are still judged by ``score`` against the target.
 
     Returns
     -------
@@ -353,19 +476,31 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_ste
         return time.perf_counter() - start
 
     for steps in plan:
+        if best is not None and best[0]["identical"] == 1.0:
+            break  # every pixel at its aimed level: another candidate would render the same levels
         if candidates and time_budget_s is not None and elapsed() + pace * (steps + projections) > time_budget_s:
             clock_steps += 1
             continue
         began = time.perf_counter()
-        share = None if time_budget_s is None or candidates else time_budget_s / 2
-        fit = fit_field(target, config, iterations=steps, time_budget_s=share, threads=threads,
+        # The first candidate's budget: half for the fit, a third of what is left for the projections, the
+        # rest for the hinge fit; a later candidate runs only where its steps fit (above).
+        first = time_budget_s is not None and not candidates
+
+        def left(share=1.0):
+            return max(0.0, share * (time_budget_s - elapsed())) if first else None
+
+        fit = fit_field(target, config, iterations=steps, time_budget_s=left(0.5), threads=threads,
                         progress=lambda taken, planned, loss: progress and progress(done + taken, total))
         used_threads = fit.threads
-        retrieved = retrieve_field(target, config, iterations=projections, time_budget_s=share,
-                                   initial=fit.field,
+        retrieved = retrieve_field(target, config, iterations=projections, time_budget_s=left(1 / 3),
+                                   initial=fit.field, aim=aim,
                                    progress=lambda taken, planned: progress and progress(done + steps + taken, total))
-        done += steps + projections
         clock_steps += fit.clock_steps + retrieved.clock_steps
+        if level_iterations:
+            retrieved = fit_levels(retrieved.field, target_levels(target, config) if aim is None else aim, config,
+                                   iterations=level_iterations, time_budget_s=left())
+            clock_steps += retrieved.clock_steps
+        done += steps + projections
         levels = Rendering.from_a_scans(operator.apply(retrieved.field)).levels
         candidate = {"adam_steps": fit.iterations, "score": float(score(levels)), "identical": retrieved.identical,
                      "seconds": time.perf_counter() - began}
@@ -379,60 +514,100 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_ste
 
 
 # ------------------------------------------------------------------ decode
-def row_offsets_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """Depth offsets o_{d,n} (µm) of the four rows of a cell in row n: (4, Nz).
+def row_depths_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """Depths (µm) of the four rows of each cell row n, as the phantom file holds them: (4, Nz).
 
-    (−3, −1, 1, 3)·λ/16 from the cell depth; in row 0 (z_0 = 0) the negative
-    ones move by λ/2, keeping their carrier phase, so that z ≥ 0.
+    z_n + (−3, −1, 1, 3)·λ/16, z_n the cell depth; in row 0 (z_0 = 0) the
+    negative offsets move by λ/2, keeping their carrier phase, so that
+    z ≥ 0. Each depth is rounded to :data:`octcl.phantom.SIGNIFICANT_DIGITS`
+    as the file writes it, and the decode is exact for these depths: an
+    unrounded depth moves by up to 5e−5 µm in the file (z ≥ 1000 µm), a
+    carrier phase of 4.8e−4 rad, enough to move a dark pixel whose
+    contributions cancel a thousandfold by a level (0.03 % of Uniform A's
+    pixels were).
     """
     offsets = np.repeat((OFFSETS_IN_WAVELENGTHS * config.wavelength_um)[:, None], config.depth_pixels, axis=1)
     offsets[:, 0] = np.where(offsets[:, 0] < 0, offsets[:, 0] + config.wavelength_um / 2, offsets[:, 0])
-    return offsets
+    return _round_significant(cell_depths_um(config)[None, :] + offsets, SIGNIFICANT_DIGITS)
+
+
+def row_offsets_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """Depth offsets o_{d,n} (µm) of the four rows of a cell in row n from its cell depth: (4, Nz)
+    (:func:`row_depths_um` less z_n)."""
+    return row_depths_um(config) - cell_depths_um(config)[None, :]
 
 
 def _carriers(config: ScannerConfig) -> np.ndarray:
-    """e^{−2i·k0·o_d}, the carrier phase of each offset (the same in every row)."""
-    return np.exp(-2j * (2 * np.pi / config.wavelength_um) * OFFSETS_IN_WAVELENGTHS * config.wavelength_um)
+    """e^{−2i·k0·o_{d,n}}, the carrier phase of each row's offset: (4, Nz, 1), broadcasting over columns.
+
+    Near (3π/4, π/4, −π/4, −3π/4) for the offsets (−3, −1, 1, 3)·λ/16; the
+    file's rounding of the depths moves them by up to 5e−4 rad.
+    """
+    return np.exp(-2j * (2 * np.pi / config.wavelength_um) * row_offsets_um(config))[:, :, None]
 
 
 def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
     """Non-negative weights p_d, two per value, with Σ_d p_d·carriers[d] = value.
 
-    ``carriers`` are unit phasors 90° apart (:func:`_carriers`); a value goes
-    to the two whose angles enclose it. Returns (len(carriers),) + values.shape.
+    ``carriers`` are unit phasors about 90° apart: (D,), the same for every
+    value, or (D, ...) broadcasting against ``values`` (:func:`_carriers`:
+    per row), in the same order around the circle for every value. A value
+    goes to the two whose angles enclose it. Returns (D,) + values.shape.
     """
+    carriers = np.asarray(carriers)
+    per_value = carriers.ndim > 1
+    if per_value:
+        carriers = np.broadcast_to(carriers, (carriers.shape[0],) + np.shape(values))
     angles = np.angle(carriers)
-    order = np.argsort(angles)
-    weights = np.zeros((carriers.size,) + values.shape)
+    order = np.argsort(angles.reshape(carriers.shape[0], -1)[:, 0])
+    weights = np.zeros((carriers.shape[0],) + np.shape(values))
     turn = 2 * np.pi
     for position, first in enumerate(order):
         second = order[(position + 1) % order.size]
         sector = (angles[second] - angles[first]) % turn
         inside = (np.angle(values) - angles[first]) % turn < sector
+        c1, c2 = (carriers[first][inside], carriers[second][inside]) if per_value \
+            else (carriers[first], carriers[second])
+        value = values[inside]
         # value = p·c1 + q·c2 with real p, q: Im(conj(c1)·c2) is the determinant.
-        c1, c2, value = carriers[first], carriers[second], values[inside]
         determinant = (np.conj(c1) * c2).imag
         weights[first][inside] = (np.conj(value) * c2).imag / determinant
         weights[second][inside] = (np.conj(c1) * value).imag / determinant
     return np.maximum(weights, 0.0)  # rounding can leave −1e−17 on a sector's edge
 
 
-def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """The grid field that renders like rows of amplitude ``weights`` at :func:`row_offsets_um`.
+#: Terms of the series in :func:`rendered_cells` for the rounded offsets' depth-kernel shifts.
+_SHIFT_TERMS = 3
 
-    F_eff = IDFT_q(Σ_d e^{−2i(k_q − k0)·o_d}·DFT_n(M_d)), M_d = weights_d·e^{−2i·k0·(z_n + o_d)}
-    (module docstring); row 0's own offsets enter as one extra term.
+
+def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """The grid field that renders like rows of amplitude ``weights`` at :func:`row_depths_um`.
+
+    F_eff = IDFT_q(Σ_d Σ_n e^{−2i(k_q − k0)·o_{d,n}}·M_d[n]·e^{−2πiqn/Nz}),
+    M_d[n, ·] = weights_d·e^{−2i·k0·(z_n + o_{d,n})} (module docstring). The
+    offsets of rows n ≥ 1 are ō_d + δ_{d,n}, ō_d the unrounded offset and
+    |δ| ≤ 5e−5 µm the file's rounding: e^{−2i(k_q − k0)·δ} is its series,
+    Σ_m (−2i(k_q − k0)·δ)^m/m!, whose terms after the third are below 1e−14
+    (|2(k_q − k0)·δ| < 1e−4), so each m is one depth DFT. Row 0's own
+    offsets enter as one extra term each.
     """
     k = ref.wavenumbers(config)
     k0 = 2 * np.pi / config.wavelength_um
     depth_um = cell_depths_um(config)[:, None]
     offsets = row_offsets_um(config)
+    nominal = OFFSETS_IN_WAVELENGTHS * config.wavelength_um
     spectrum = np.zeros(weights.shape[1:], dtype=np.complex128)
     for d in range(weights.shape[0]):
         cells = weights[d] * np.exp(-2j * k0 * (depth_um + offsets[d][:, None]))
         first_row = cells[0].copy()
         cells[0] = 0.0
-        spectrum += np.exp(-2j * (k - k0) * offsets[d, 1])[:, None] * np.fft.fft(cells, axis=0)
+        rounding = (offsets[d] - nominal[d])[:, None]
+        term, series = cells, np.zeros_like(spectrum)
+        for m in range(_SHIFT_TERMS):
+            if m:
+                term = term * rounding / m
+            series += (-2j * (k - k0))[:, None] ** m * np.fft.fft(term, axis=0)
+        spectrum += np.exp(-2j * (k - k0) * nominal[d])[:, None] * series
         spectrum += np.exp(-2j * (k - k0) * offsets[d, 0])[:, None] * first_row[None, :]
     return np.fft.ifft(spectrum, axis=0)
 
@@ -491,7 +666,7 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     scale = math.sqrt(shadow_bound / per_ascan.max())
     row, column, offset = np.nonzero(np.moveaxis(weights, 0, -1) > 0)
     amplitude = scale * np.moveaxis(weights, 0, -1)[row, column, offset]
-    z_um = cell_depths_um(config)[row] + row_offsets_um(config)[offset, row]
+    z_um = row_depths_um(config)[offset, row]
     x_um = ref.ascan_positions_um(config)[column]
     return Phantom(x_um, np.zeros_like(x_um), z_um, 100.0 * amplitude**2)
 
@@ -499,4 +674,4 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
 __all__ = ["DECODE_CORRECTIONS", "ENERGY_FLOOR_PCT", "INTERVAL_MARGIN", "LinearFit", "LinearStart",
            "START_LENGTHS", "START_PROJECTIONS", "linear_start", "MOMENTUM", "RETRIEVAL_ITERATIONS",
            "SHADOW_BOUND", "STEP", "decode_exact", "level_magnitude_bounds", "rendered_cells",
-           "retrieve_field", "row_offsets_um", "split_on_carriers"]
+           "retrieve_field", "row_depths_um", "row_offsets_um", "split_on_carriers", "fit_levels"]

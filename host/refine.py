@@ -413,8 +413,9 @@ class RefineResult:
     stop_reason : str
         What ended the refinement: ``schedule`` (its phases and restarts, or
         ``max_iterations``, ran out), ``converged`` (a restart gained less
-        than :attr:`RefineSchedule.min_gain`), ``target score`` or
-        ``deadline``.
+        than :attr:`RefineSchedule.min_gain`), ``target score``,
+        ``ceiling`` (the input renders the aimed levels: :func:`refine`'s
+        ``aim``) or ``deadline``.
     torch_threads : int
         CPU threads the loss ran with at the end (:class:`_ThreadChooser`).
     falls : list of int
@@ -653,7 +654,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
            deadline: float | None = None, kernels=None, config: ScannerConfig = DEFAULT_CONFIG,
            progress=None, on_improvement=None, exact_score: ExactScore | None = None,
            ceiling: float | None = None, threads: int | None = None,
-           target_score: float | None = None) -> RefineResult:
+           target_score: float | None = None, aim: np.ndarray | None = None) -> RefineResult:
     """Refine depths and energies of ``phantom`` towards the target scan.
 
     Parameters
@@ -692,6 +693,13 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         either way it changes the speed, not the result.
     target_score : float, optional
         Stop as soon as an exact evaluation reaches this score (in (0, 1]).
+    aim : ndarray of uint8, optional
+        The levels the start was made to render (stage 1's aim,
+        :func:`octcl.host.ceiling.error_diffused`): if the input phantom
+        renders every pixel at its aimed level, nothing is refined
+        (``stop_reason`` ``ceiling``): every pixel the scanner can write is
+        then at the target's level, and each unwritable one on the side
+        chosen for it.
 
     Returns
     -------
@@ -842,8 +850,11 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     previous_threads = torch.get_num_threads()
     try:
         refiner.threads.before_call()  # exact scores, the first included, at the loss's thread count
-        initial = refiner.score(refiner.render(z_um, log_energy, for_adjoint=False))
+        rendering = refiner.render(z_um, log_energy, for_adjoint=False)
+        initial = refiner.score(rendering)
         best = Checkpoint(z_um.copy(), log_energy.copy(), initial, "initial", 0)
+        if aim is not None and np.array_equal(rendering.levels, aim):
+            stop_reason = "ceiling"
         last_score = (initial["mean"], time.monotonic())
         trace.append({"time_s": last_score[1] - started, "stage": "initial", "iteration": 0,
                       "loss": None, "score": initial["mean"]})

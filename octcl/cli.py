@@ -177,7 +177,8 @@ def _invert_lines(result: dict) -> list[str]:
                        for name in ("field", "decode", "setup", "refine") if name in seconds)
     ending = ("fixed schedule, " if result["fixed_schedule"] else "deadline mode, ") + {
         "schedule": "schedule completed", "converged": "stopped: converged",
-        "target score": "stopped: target score reached", "deadline": "stopped by the time budget"}[result["stop_reason"]]
+        "target score": "stopped: target score reached", "deadline": "stopped by the time budget",
+        "ceiling": "nothing to refine: every pixel at its aimed level"}[result["stop_reason"]]
     if result["falls"]:
         ending += f"; fell after step{'s' if len(result['falls']) > 1 else ''} " + \
             ", ".join(map(str, result["falls"])) + " and went back to the best phantom"
@@ -191,7 +192,12 @@ def _invert_lines(result: dict) -> list[str]:
             ("reproduce (the same file again): " if result["reproducible"] else
              "reproduce (this schedule, without the clock's decisions): ") + result["reproduce"],
             f"seconds: {format_seconds(seconds['total'])} ({stages}); "
-            f"checkpoints {result['checkpoints']}, peak memory {result['peak_memory_mib']:.0f} MiB"]
+            f"checkpoints {result['checkpoints']}, peak memory {result['peak_memory_mib']:.0f} MiB",
+            f"on the target's level: {100 * result['exact_share']:.2f} % of pixels; "
+            f"{100 * result['ceiling']['writable_share']:.2f} % are at levels the scanner writes, "
+            f"{100 * result['avoidable_share']:.2f} % of pixels are writable and off their level; "
+            f"the target moved to writable levels scores {result['ceiling']['nearest_score']:.6f} "
+            f"(nearest) and {result['ceiling']['diffused_score']:.6f} (error-diffused)"]
 
 
 def _batch_progress(display: ProgressDisplay, quiet: bool):

@@ -36,8 +36,9 @@ Writes, in ``--out``:
 - ``comparison.md``: per run the score, seconds, iterations and what ended
   stage 3; with several ``--schedules``, each one's score difference and
   time ratio to the first, its global score and median seconds; the
-  seconds each run took to reach 0.9947, 0.998, 0.999, 0.9995, 0.9998 and its final score
-  − 1e−4; and stage 3's time per iteration, part by part, in wall and CPU
+  seconds each run took to reach 0.9947, 0.998, 0.999, 0.9995, 0.9998, its final score
+  − 1e−4 and the scores of the target's nearest-writable and error-diffused images (the
+  ceiling, host/ceiling.py, beside the shares of pixels exact, writable and avoidably off); and stage 3's time per iteration, part by part, in wall and CPU
   seconds (``--summarise`` writes it again from the files).
 
 ``--schedules fixed-length default`` runs, on each scan and seed, the
@@ -68,7 +69,8 @@ from octcl._io import atomic_write, write_grey_png
 from octcl.host.batch.report import comparison_panel
 from octcl.host.loss import ExactScore
 from octcl.host.refine import RefineSchedule
-from octcl.host.target import read_target
+from octcl.host.field import target_levels
+from octcl.host.target import read_target, target_scan
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.render import render
 from octcl.scorer import COMPONENTS, global_score
@@ -80,8 +82,13 @@ ORANGE = REPOSITORY.parent / "shared" / "data" / "real" / "orange.png"
 ORANGE_MISSING = f"orange: {ORANGE} not found (a real scan the repository may not carry; see data/README.md)"
 
 
-def development_set(out: Path, skin: int) -> dict[str, Path]:
-    """{name: target PNG}; skin targets are rendered into ``out/targets``; orange only if present."""
+def development_set(out: Path, skin: int, plain: int = 0) -> dict[str, Path]:
+    """{name: target PNG}; skin targets are rendered into ``out/targets``; orange only if present.
+
+    ``plain_skin_N`` (``plain`` of them) are renderings of ``Phantom.skin(N)`` quantised plainly,
+    floor(256·D) with no colour map: targets with unwritable levels, as real scans have, whose phantom is
+    known (host/ceiling.py).
+    """
     targets = {name: OFFICIAL_DIR / f"{name}.png" for name in OFFICIAL}
     if ORANGE.is_file():
         targets["orange"] = ORANGE
@@ -90,6 +97,12 @@ def development_set(out: Path, skin: int) -> dict[str, Path]:
         if not path.exists():
             write_grey_png(path, render(Phantom.skin(seed)).levels)
         targets[f"skin_{seed}"] = path
+    for seed in range(plain):
+        path = out / "targets" / f"plain_skin_{seed}.png"
+        if not path.exists():
+            display = render(Phantom.skin(seed)).display
+            write_grey_png(path, np.minimum(np.floor(256 * display), 255).astype(np.uint8))
+        targets[f"plain_skin_{seed}"] = path
     return targets
 
 
@@ -97,13 +110,16 @@ def development_set(out: Path, skin: int) -> dict[str, Path]:
 #: arguments (beside the time budget, seed and iterations, which they may
 #: override). ``default`` is invert's default (the linear regime);
 #: ``physical`` the published pipeline (``--regime physical``);
-#: ``budget-10`` the default with a 10 s time budget; ``fixed-length`` the
+#: ``budget-10`` (``-5``, ``-3``) the default with a 10 s (5 s, 3 s) time budget; ``field-300`` and
+#: ``field-75`` the linear regime's first display fit of 300 or 75 steps (150 by default); ``fixed-length`` the
 #: default's phases and restarts, each run to its whole length (the schedule
 #: before adaptive stopping); ``stall-rule`` adds the main run's stall rule
 #: with a patience of 2 checkpoints (host/refine.py); ``no-fall-guard`` never
 #: goes back to the best phantom when the main run falls (``max_falls`` 0).
 #: Variants of the loss are compared by ``bench_refine.py``.
 SCHEDULES = {"default": "", "physical": "regime='physical'", "budget-10": "time_budget_s=10.0",
+             "budget-5": "time_budget_s=5.0", "budget-3": "time_budget_s=3.0",
+             "field-300": "field_iterations=300", "field-75": "field_iterations=75",
              "fixed-length": "schedule=RefineSchedule().fixed_length()",
              "stall-rule": "schedule=RefineSchedule(patience=2)", "no-fall-guard": "schedule=RefineSchedule(max_falls=0)"}
 
@@ -155,6 +171,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("bench_invert"), help="output folder")
     parser.add_argument("--scans", nargs="*", help="names to run (default: all of the set)")
     parser.add_argument("--skin", type=int, default=2, help="synthetic skin targets to add (default 2)")
+    parser.add_argument("--plain", type=int, default=0,
+                        help="plainly quantised skin renderings to add, targets with unwritable levels (default 0)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds per scan (default 0 1 2)")
     parser.add_argument("--schedules", nargs="+", choices=sorted(SCHEDULES), default=["default"],
                         help="stage-3 schedules to compare, run one after the other on each scan and seed "
@@ -166,7 +184,7 @@ def main(argv=None) -> int:
         print(write_summary(args.out))
         return 0
 
-    targets = development_set(args.out, args.skin)
+    targets = development_set(args.out, args.skin, args.plain)
     names = args.scans or list(targets)
     if "orange" not in targets:
         if not args.scans:
@@ -199,6 +217,11 @@ def main(argv=None) -> int:
                                                       f"{name}, seed {seed}: score {components['mean']:.5f} after "
                                                       f"{report['seconds']['total']:.0f} s"))
                 reached = time_to_scores(report["trace"], components["mean"])
+                ceiling = report["ceiling"]
+                oracles = {"nearest": ceiling["nearest_score"], "diffused": ceiling["diffused_score"]}
+                scored = [(entry["time_s"], entry["score"]) for entry in report["trace"] if entry.get("score") is not None]
+                reached.update({label: next((t for t, score in scored if score >= level), None)
+                                for label, level in oracles.items()})
                 rows[run] = {"scan": name, "schedule": schedule, "seed": seed,
                              **{c: components[c] for c in COMPONENTS},
                              "mean": components["mean"], "initial_score": report["initial_score"],
@@ -206,6 +229,9 @@ def main(argv=None) -> int:
                              "stop_reason": report.get("stop_reason"),
                              "falls": " ".join(map(str, report.get("falls", []))),
                              "reproducible": report.get("reproducible"),
+                             "exact_share": float(np.mean(levels == target_levels(target_scan(target_array)))),
+                             "writable_share": ceiling["writable_share"], "avoidable_share": report["avoidable_share"],
+                             "nearest_score": ceiling["nearest_score"], "diffused_score": ceiling["diffused_score"],
                              "seconds": report["seconds"]["total"], "wall_s": wall,
                              **{f"seconds_to_{label}": value for label, value in reached.items()},
                              "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
@@ -232,7 +258,8 @@ def main(argv=None) -> int:
     with atomic_write(args.out / "bench.json", "w") as handle:
         json.dump(summary, handle, indent=1)
     columns = ["scan", "schedule", "seed", *COMPONENTS, "mean", "initial_score", "iterations", "field_iterations",
-               "stop_reason", "falls", "reproducible", "seconds", "wall_s", *[key for key in next(iter(rows.values())) if
+               "stop_reason", "falls", "reproducible", "exact_share", "writable_share", "avoidable_share",
+               "nearest_score", "diffused_score", "seconds", "wall_s", *[key for key in next(iter(rows.values())) if
                                                      key.startswith("seconds_to_")],
                "peak_memory_mib", "load_average"]
     write_csv(args.out / "bench.csv", columns, rows.values())

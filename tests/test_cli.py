@@ -28,7 +28,8 @@ JSON_KEYS = {
     "score --refs": {"refs", "preds", "scans", "medians", "score", "csv", "seconds"},
     "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
                "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "stop_reason", "falls", "seed", "regime", "field_iterations",
-               "fixed_schedule", "threads", "reproduce", "reproducible", "report"},
+               "fixed_schedule", "threads", "reproduce", "reproducible", "ceiling", "exact_share", "avoidable_share",
+               "report"},
     "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "octcl_version", "time_budget_s",
                          "seed", "options", "cluster", "wall_s"},
     "weights": {"weights", "ok"},
@@ -268,9 +269,13 @@ def test_invert_summary_says_where_the_main_run_fell():
               "iterations": 60, "fixed_schedule": True, "stop_reason": "schedule", "falls": [], "field_iterations": 5,
               "regime": "linear", "seed": 0, "threads": 1, "reproduce": "--seed 0", "reproducible": True,
               "checkpoints": 2,
-              "peak_memory_mib": 100.0, "seconds": {"total": 9.0}}
+              "peak_memory_mib": 100.0, "seconds": {"total": 9.0}, "exact_share": 0.9, "avoidable_share": 0.002,
+              "ceiling": {"writable_share": 0.898, "nearest_score": 0.9997, "diffused_score": 0.9998}}
     assert "iterations: 60 (fixed schedule, schedule completed); regime linear, field_iterations 5" in \
         "\n".join(_invert_lines(result))
+    assert ("on the target's level: 90.00 % of pixels; 89.80 % are at levels the scanner writes, 0.20 % of "
+            "pixels are writable and off their level; the target moved to writable levels scores 0.999700 "
+            "(nearest) and 0.999800 (error-diffused)") in _invert_lines(result)
     result["falls"] = [20, 40]
     assert "(fixed schedule, schedule completed; fell after steps 20, 40 and went back to the best phantom)" in \
         "\n".join(_invert_lines(result))
@@ -346,14 +351,16 @@ def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, official_
     assert results[0]["score"] == results[1]["score"]
     first = results[0]
     assert first["fixed_schedule"] and not first["stopped_by_deadline"]
-    assert (first["iterations"], first["field_iterations"], first["threads"]) == (10, 20, 1)
-    assert first["reproduce"] == "--regime linear --seed 5 --iterations 10 --field-iterations 20 --threads 1"
+    # Stage 1 renders this scan (the scanner's own) exactly: stage 3 has nothing to refine.
+    assert (first["iterations"], first["field_iterations"], first["threads"]) == (0, 20, 1)
+    assert first["stop_reason"] == "ceiling" and first["exact_share"] == 1.0 and first["score"] == 1.0
+    assert first["reproduce"] == "--regime linear --seed 5 --iterations 0 --field-iterations 20 --threads 1"
     # The target as an array (what a batch runner sends a worker): in the
     # linear regime nothing is drawn at random, so another seed gives the
     # same file; in the physical regime it draws other elevations in stage 2.
     array = read_target(target)
     same = octcl.invert(array, tmp_path / "c.txt", seed=6, iterations=10, field_iterations=20, name="layers")
-    assert same.target == "layers" and same.iterations == 10
+    assert same.target == "layers" and same.iterations == 0
     assert (tmp_path / "c.txt").read_bytes() == (tmp_path / "a.txt").read_bytes()
     physical = [octcl.invert(array, tmp_path / f"p{seed}.txt", seed=seed, iterations=2, field_iterations=20,
                              regime="physical") for seed in (5, 6)]

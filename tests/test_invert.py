@@ -114,12 +114,14 @@ def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):
     """SIGKILL at a random moment after the first checkpoint: the output is a whole, valid phantom."""
     output = tmp_path / "killed.txt"
     # Checkpoints as often as the score improves (every iteration is scored),
-    # so the kill is likely to land during a write.
+    # so the kill is likely to land during a write. The physical regime: the
+    # linear one renders this scan exactly after stage 1 and stops there.
     code = (
         "import octcl.host.invert as invert\n"
         "from octcl.host.refine import Phase, RefineSchedule\n"
         "invert.CHECKPOINT_INTERVAL_S = 0.0\n"
-        f"invert.invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=120,\n"
+        f"invert.invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=120, regime='physical',\n"
+        "              field_iterations=20,\n"
         "              schedule=RefineSchedule(phases=(Phase(10000, 0.002, 0.05),), restarts=(), score_every=1))\n"
     )
     process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
@@ -147,7 +149,8 @@ def test_a_deadline_run_that_took_no_decision_from_the_clock_repeats(tmp_path, l
     """Deadline mode, threads timed or given: the same file, and ``reproduce``'s fixed schedule writes it too."""
     schedule = RefineSchedule(phases=(Phase(6, 0.002, 0.02),), restarts=(), score_every=3)
     timed = invert(layers_path, tmp_path / "timed.txt", time_budget_s=3000, field_iterations=40, schedule=schedule)
-    assert timed.reproducible and timed.threads is None and timed.stop_reason == "schedule"
+    # Layers A is the scanner's own: stage 1 renders it exactly and stage 3 stops at once.
+    assert timed.reproducible and timed.threads is None and timed.stop_reason == "ceiling"
     two = invert(layers_path, tmp_path / "two.txt", time_budget_s=3000, field_iterations=40, schedule=schedule,
                  threads=2)
     assert two.reproducible and two.reproduce == timed.reproduce.replace("--threads 1", "--threads 2")

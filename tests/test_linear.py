@@ -11,8 +11,9 @@ from octcl import _reference as ref
 from octcl._io import GREY_LUT
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.host.field import FieldOperator
-from octcl.host.linear import (INTERVAL_MARGIN, SHADOW_BOUND, _carriers, decode_exact, level_magnitude_bounds,
-                               linear_start, rendered_cells, retrieve_field, row_offsets_um, split_on_carriers)
+from octcl.host.linear import (INTERVAL_MARGIN, LEVEL_CHECK_EVERY, LEVEL_FIT_ITERATIONS, SHADOW_BOUND,
+                               _carriers, decode_exact, fit_levels, level_magnitude_bounds, linear_start, rendered_cells, retrieve_field, row_depths_um, row_offsets_um,
+                               split_on_carriers)
 from octcl.phantom import Phantom
 from octcl.render import Rendering
 
@@ -64,21 +65,38 @@ def test_the_margin_shrinks_every_interval_inside_the_plain_one():
                 max_size=40))
 def test_split_on_carriers_is_non_negative_two_per_value_and_exact(values):
     values = np.array(values)
-    carriers = _carriers(DEFAULT_CONFIG)
-    weights = split_on_carriers(values, carriers)
-    assert np.all(weights >= 0)
-    assert np.all((weights > 0).sum(axis=0) <= 2)
-    error = np.abs((weights * carriers[:, None]).sum(axis=0) - values)
-    assert np.all(error <= 1e-12 * (1 + np.abs(values)))
+    rows = _carriers(DEFAULT_CONFIG)[:, :, 0]
+    # One set of carriers for every value, and a set per value (each row's own, as the decode uses them).
+    for carriers, per_value in ((rows[:, 7], rows[:, 7][:, None]),
+                                (rows[:, np.arange(values.size) % rows.shape[1]], None)):
+        weights = split_on_carriers(values, carriers)
+        assert np.all(weights >= 0)
+        assert np.all((weights > 0).sum(axis=0) <= 2)
+        error = np.abs((weights * (carriers if per_value is None else per_value)).sum(axis=0) - values)
+        assert np.all(error <= 1e-12 * (1 + np.abs(values)))
 
 
-def test_rows_sit_at_their_offsets_inside_the_depth_range():
+def test_rows_sit_at_their_offsets_inside_the_depth_range_on_the_files_grid():
     offsets = row_offsets_um(DEFAULT_CONFIG)
     assert offsets.shape == (4, DEFAULT_CONFIG.depth_pixels)
     assert np.all(offsets[:, 0] >= 0)  # row 0 is at z = 0
     k0 = 2 * np.pi / DEFAULT_CONFIG.wavelength_um
-    # Row 0's moved offsets keep their carrier phases.
-    np.testing.assert_allclose(np.exp(-2j * k0 * offsets[:, 0]), np.exp(-2j * k0 * offsets[:, 1]), atol=1e-12)
+    # Row 0's moved offsets keep their carrier phases, to the file's rounding (≤ 5e−5 µm: 4.8e−4 rad).
+    np.testing.assert_allclose(np.exp(-2j * k0 * offsets[:, 0]), np.exp(-2j * k0 * offsets[:, 1]), atol=1e-3)
+    depths = row_depths_um(DEFAULT_CONFIG)
+    assert np.array_equal(depths, np.vectorize(lambda z: float(f"{z:.7e}"))(depths))  # what the file holds
+
+
+def test_a_decoded_phantom_renders_as_its_field_after_the_file_round_trip(tmp_path):
+    """The rows sit on the file's 8-digit depths, so the saved phantom renders the field's levels, every one."""
+    field = _random_field(DEFAULT_CONFIG, 4)
+    phantom = decode_exact(field, DEFAULT_CONFIG)
+    phantom.save(tmp_path / "decoded.txt")
+    loaded = Phantom.load(tmp_path / "decoded.txt")
+    assert np.array_equal(loaded.z_um, phantom.z_um)
+    _, rendering = _reference(loaded, DEFAULT_CONFIG)
+    expected = Rendering.from_a_scans(FieldOperator(DEFAULT_CONFIG).apply(field)).levels
+    assert np.array_equal(rendering.levels, expected)
 
 
 def test_rendered_cells_is_the_reference_scanners_rendering_of_the_rows():
@@ -159,6 +177,40 @@ def test_retrieve_field_matches_most_levels_of_a_scanner_made_target():
     assert fit.identical > 0.9 and fit.identical > start.identical + 0.1
 
 
+def test_fit_levels_puts_every_pixel_at_its_level_and_the_brightest_at_one():
+    """A field's own levels, from that field disturbed (a fifth of the pixels off their level): the hinge fit
+    puts every pixel back at its level, its brightest pixel at |A| = 1 so that the display's normalisation
+    holds, and stops as soon as the levels are all there."""
+    operator = FieldOperator(SMALL)
+    truth = _random_field(SMALL, 5)
+    levels = Rendering.from_a_scans(operator.apply(truth)).levels
+    rng = np.random.default_rng(6)
+    start = truth * (1 + 0.05 * (rng.normal(size=truth.shape) + 1j * rng.normal(size=truth.shape)))
+    assert np.mean(Rendering.from_a_scans(operator.apply(start)).levels == levels) < 0.8
+    fit = fit_levels(start, levels, SMALL)
+    a_scans = operator.apply(fit.field)
+    assert fit.identical == 1.0 and np.array_equal(Rendering.from_a_scans(a_scans).levels, levels)
+    assert np.abs(a_scans).max() == pytest.approx(1.0)
+    assert fit.iterations < LEVEL_FIT_ITERATIONS and fit.iterations % LEVEL_CHECK_EVERY == 0
+    assert fit.clock_steps == 0
+    cut = fit_levels(start, levels, SMALL, iterations=10_000, time_budget_s=0.0)
+    assert cut.clock_steps == 1 and cut.iterations == 1
+    with pytest.raises(ValueError, match="iterations"):
+        fit_levels(start, levels, SMALL, iterations=0)
+
+
+def test_linear_start_stops_trying_once_a_candidate_renders_every_aimed_level(official_data):
+    """On an official scan (the scanner rendered it), the first candidate renders every level: the
+    half-length one is left out; without the hinge fit both run, neither at every level."""
+    from octcl.host.target import read_target, target_scan
+
+    levels = target_scan(read_target(official_data / "Scan_Exp2_Layers_A.png"))
+    found = linear_start(levels, lambda rendered: 0.0, adam_steps=150, threads=1)
+    assert [c["identical"] for c in found.candidates] == [1.0]
+    plain = linear_start(levels, lambda rendered: 0.0, adam_steps=150, threads=1, level_iterations=0)
+    assert len(plain.candidates) == 2 and max(c["identical"] for c in plain.candidates) < 1.0
+
+
 def test_retrieve_field_stays_bounded_on_an_official_scan(official_data):
     """At a full step (α = 1) the momentum iteration diverges on Uniform A (the field grows to ~1e93 and
     35 % of the levels are the target's); at α = 0.8 it converges (56 %), the field within a few times
@@ -196,7 +248,8 @@ def test_linear_start_keeps_the_best_scoring_candidate():
     scores = iter([0.5, 0.9, 0.7])  # the second candidate (half the steps) scores best
     calls = []
     found = linear_start(levels, lambda rendered: next(scores), adam_steps=10, lengths=(1.0, 0.5, 2.0),
-                         projections=20, threads=1, progress=lambda step, steps: calls.append((step, steps)))
+                         projections=20, threads=1, progress=lambda step, steps: calls.append((step, steps)),
+                         level_iterations=0)
     assert [c["adam_steps"] for c in found.candidates] == [10, 5, 20]
     assert [c["score"] for c in found.candidates] == [0.5, 0.9, 0.7]
     assert found.adam_steps == 5 and found.clock_steps == 0 and found.threads == 1
