@@ -78,19 +78,21 @@ REGIMES = ("linear", "physical")
 #: at 0.99950 after 318 s.
 FIELD_BUDGET_FRACTION = 0.08
 FIELD_BUDGET_CAP_S = 45.0
-#: The linear regime's share: its stage 1 is most of a short budget's work
-#: (7.7–8.5 s of a 21 s default run; with ``--time-budget 10`` the clock cuts
-#: its first display fit and leaves out the second, docs/benchmarks.md).
-LINEAR_FIELD_BUDGET_FRACTION = 0.5
+#: The linear regime's share: its stage 1 is nearly all of a run's work
+#: (4–7 s of a 6–9 s default run, stage 3 then stopping at once). With
+#: ``--time-budget 5``, 0.5, 0.6 and 0.7 gave Uniform B 0.99685, 0.99998
+#: and 0.999999 and ended 5.4, 5.2 and 5.8 s into the run (orange and skin_0
+#: at or within 1e−7 of their ceiling at 0.6 and 0.7; docs/benchmarks.md).
+LINEAR_FIELD_BUDGET_FRACTION = 0.6
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
 #: over them); in the linear regime those of the first display fit, the
 #: second, run only where the first does not render every aimed level, has
 #: half as many (:func:`octcl.host.linear.linear_start`). Linear: with the
 #: hinge fit (:func:`octcl.host.linear.fit_levels`) after the projections,
 #: 300, 150 and 75 steps all put every pixel of the nine development scans
-#: at its aimed level and gave the same scores; 150 was the fastest in the
-#: median (6.0 s for the whole inversion against 6.9 s and 5.6 s, but 75
-#: left the hinge fit up to 6 s more on two scans; docs/benchmarks.md).
+#: at its aimed level with the same scores; inside ``invert`` 150 took 7.1 s
+#: in the median and 7.9 s at most, 300 7.8 s (9.6 s), 75 6.3 s (11.7 s:
+#: its hinge fit needed 4–5 s more on two scans). docs/benchmarks.md.
 FIELD_ITERATIONS = {"physical": 1500, "linear": 150}
 #: Stage 3's schedule in the linear regime: short steps while they gain.
 #: From a linear start the physical regime's schedule fell at once (its

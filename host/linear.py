@@ -389,8 +389,9 @@ class LinearStart:
         Display-fit steps of the best candidate.
     candidates : list of dict
         Per candidate tried: ``adam_steps``, ``score`` (the exact score of
-        the field's own 8-bit rendering), ``identical`` (share of pixels at
-        the target's level), ``seconds``.
+        the field's own 8-bit rendering, where there were several
+        candidates to choose from; else None), ``identical`` (share of
+        pixels at the aimed level), ``seconds``.
     seconds : float
     clock_steps : int
         Decisions the clock took: a fit or projection cut by the budget, or
@@ -470,13 +471,14 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_ste
     plan = [max(1, round(length * adam_steps)) for length in lengths]
     total = sum(plan) + projections * len(plan)
     operator = FieldOperator(config)
-    candidates, best, done, clock_steps, pace, used_threads = [], None, 0, 0, None, threads
+    candidates, done, clock_steps, pace, used_threads = [], 0, 0, None, threads
 
     def elapsed():
         return time.perf_counter() - start
 
+    fields = []
     for steps in plan:
-        if best is not None and best[0]["identical"] == 1.0:
+        if candidates and candidates[0]["identical"] == 1.0:
             break  # every pixel at its aimed level: another candidate would render the same levels
         if candidates and time_budget_s is not None and elapsed() + pace * (steps + projections) > time_budget_s:
             clock_steps += 1
@@ -497,19 +499,25 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_ste
                                    progress=lambda taken, planned: progress and progress(done + steps + taken, total))
         clock_steps += fit.clock_steps + retrieved.clock_steps
         if level_iterations:
-            retrieved = fit_levels(retrieved.field, target_levels(target, config) if aim is None else aim, config,
-                                   iterations=level_iterations, time_budget_s=left())
-            clock_steps += retrieved.clock_steps
+            fitted = fit_levels(retrieved.field, target_levels(target, config) if aim is None else aim, config,
+                                iterations=level_iterations, time_budget_s=left())
+            clock_steps += fitted.clock_steps
+            # Never below its start: a hinge fit cut short by the clock can leave fewer pixels at their level.
+            if fitted.identical >= retrieved.identical:
+                retrieved = fitted
         done += steps + projections
-        levels = Rendering.from_a_scans(operator.apply(retrieved.field)).levels
-        candidate = {"adam_steps": fit.iterations, "score": float(score(levels)), "identical": retrieved.identical,
-                     "seconds": time.perf_counter() - began}
-        candidates.append(candidate)
+        candidates.append({"adam_steps": fit.iterations, "score": None, "identical": retrieved.identical,
+                           "seconds": time.perf_counter() - began})
+        fields.append(retrieved.field)
         if pace is None:
-            pace = candidate["seconds"] / (fit.iterations + retrieved.iterations)
-        if best is None or candidate["score"] > best[0]["score"]:
-            best = (candidate, retrieved.field)
-    return LinearStart(field=best[1], adam_steps=best[0]["adam_steps"], candidates=candidates,
+            pace = candidates[0]["seconds"] / (fit.iterations + retrieved.iterations)
+    # Scored only where there is a choice to make: an exact score costs 0.5–1 s, and stage 3 scores the
+    # start anyway.
+    if len(candidates) > 1:
+        for candidate, field in zip(candidates, fields):
+            candidate["score"] = float(score(Rendering.from_a_scans(operator.apply(field)).levels))
+    chosen = max(range(len(candidates)), key=lambda index: candidates[index]["score"] or 0.0)
+    return LinearStart(field=fields[chosen], adam_steps=candidates[chosen]["adam_steps"], candidates=candidates,
                        seconds=elapsed(), clock_steps=clock_steps, threads=used_threads)
 
 
