@@ -355,6 +355,22 @@ def test_target_score_stops_the_refinement(stage2_phantom, layers_target):
             refine(stage2_phantom, layers_target, schedule, target_score=bad)
 
 
+def test_a_start_at_its_aimed_levels_is_not_refined(stage2_phantom, layers_target):
+    """``aim``: a start that renders every aimed level stops at once (``ceiling``); one pixel off, it runs."""
+    from octcl.render import render
+
+    schedule = RefineSchedule(phases=(Phase(2, 0.01, 0.02, lpips=False),), restarts=(), score_every=2)
+    rendered = render(Phantom(saved_precision(stage2_phantom.x_um), saved_precision(stage2_phantom.y_um),
+                              saved_precision(stage2_phantom.z_um), saved_precision(stage2_phantom.energy_pct))).levels
+    at_aim = refine(stage2_phantom, layers_target, schedule, threads=1, aim=rendered)
+    assert at_aim.iterations == 0 and at_aim.stop_reason == "ceiling"
+    assert at_aim.components == at_aim.initial_components
+    off = rendered.copy()
+    off[0, 0] = GREY_LUT[255] if off[0, 0] != GREY_LUT[255] else GREY_LUT[0]
+    runs = refine(stage2_phantom, layers_target, schedule, threads=1, aim=off)
+    assert runs.iterations == 2 and runs.stop_reason == "schedule"
+
+
 def test_schedule_checks():
     with pytest.raises(ValueError, match="iterations"):
         Phase(-1, 0.01, 0.01)
