@@ -99,6 +99,21 @@ def error_diffused(levels: np.ndarray) -> np.ndarray:
     return aimed
 
 
+def aimed_levels(levels: np.ndarray) -> np.ndarray:
+    """The levels a phantom is made to render: :func:`error_diffused`, with the brightest pixel at 255.
+
+    The display divides by the B-scan's own maximum, so the scanner writes
+    255 at its brightest pixel whatever the rest: a target whose highest
+    level is below 255 (a real scan need not reach it) cannot be rendered
+    there, and its brightest pixel (the first in row-major order) is aimed
+    at 255 instead.
+    """
+    aimed = error_diffused(levels)
+    if aimed.max() < 255:
+        aimed[np.unravel_index(np.argmax(levels), aimed.shape)] = 255
+    return aimed
+
+
 @dataclass(frozen=True)
 class Ceiling:
     """What a target allows, measured before inverting it (module docstring).
@@ -133,4 +148,5 @@ def measure_ceiling(levels: np.ndarray, score) -> Ceiling:
     return Ceiling(share, float(score(nearest_writable(levels))), float(score(error_diffused(levels))))
 
 
-__all__ = ["WRITABLE", "Ceiling", "error_diffused", "measure_ceiling", "nearest_writable", "writable_share"]
+__all__ = ["WRITABLE", "Ceiling", "aimed_levels", "error_diffused", "measure_ceiling", "nearest_writable",
+           "writable_share"]

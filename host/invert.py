@@ -60,7 +60,7 @@ from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.render import render
 
-from .ceiling import WRITABLE, error_diffused, measure_ceiling
+from .ceiling import WRITABLE, aimed_levels, measure_ceiling
 from .field import target_levels
 from .refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, check_target_score, refine
 from .target import check_target, read_target, target_scan
@@ -436,7 +436,7 @@ def _linear_start(scan, config, schedule, iterations, budget_s, threads, seed, s
     """
     from .linear import ENERGY_FLOOR_PCT, decode_exact, linear_start
 
-    aim = error_diffused(target_levels(scan, config))
+    aim = aimed_levels(target_levels(scan, config))
     found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, adam_steps=iterations,
                          time_budget_s=budget_s, threads=threads,
                          progress=lambda taken, planned: step(taken, planned, None), aim=aim)

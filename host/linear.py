@@ -227,7 +227,7 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
     aim : ndarray of uint8, (Nz, Nx), optional
         The levels whose intervals the projections aim at (and that
         ``identical`` counts); default the target's own.
-        :func:`octcl.host.ceiling.error_diffused` gives writable ones.
+        :func:`octcl.host.ceiling.aimed_levels` gives ones the scanner writes.
 
     Returns
     -------
@@ -311,7 +311,7 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
         The start (a retrieved field).
     aim : ndarray of uint8, (Nz, Nx)
         The levels aimed at, each one the scanner writes
-        (:func:`octcl.host.ceiling.error_diffused`).
+        (:func:`octcl.host.ceiling.aimed_levels`).
     config : ScannerConfig
     iterations : int
         L-BFGS iterations at most (≥ 1); it stops sooner once every pixel

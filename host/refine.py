@@ -695,7 +695,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         Stop as soon as an exact evaluation reaches this score (in (0, 1]).
     aim : ndarray of uint8, optional
         The levels the start was made to render (stage 1's aim,
-        :func:`octcl.host.ceiling.error_diffused`): if the input phantom
+        :func:`octcl.host.ceiling.aimed_levels`): if the input phantom
         renders every pixel at its aimed level, nothing is refined
         (``stop_reason`` ``ceiling``): every pixel the scanner can write is
         then at the target's level, and each unwritable one on the side

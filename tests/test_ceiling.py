@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from octcl._io import GREY_LUT
-from octcl.host.ceiling import WRITABLE, Ceiling, error_diffused, measure_ceiling, nearest_writable, writable_share
+from octcl.host.ceiling import (WRITABLE, Ceiling, aimed_levels, error_diffused, measure_ceiling, nearest_writable,
+                                writable_share)
 
 #: The levels the colour map never writes (shared/physics.md §2, step 11).
 UNWRITABLE = (33, 37, 41, 45, 49, 53, 57, 61, 66, 74, 82, 90, 98, 106, 114, 122, 132, 148, 164, 180, 196, 212,
@@ -78,3 +79,16 @@ def test_measure_ceiling_scores_both_images_and_spares_a_writable_target():
     assert ceiling.writable_share == pytest.approx(0.75)
     assert np.array_equal(scored[0], nearest_writable(levels)) and np.array_equal(scored[1], error_diffused(levels))
     assert ceiling.as_dict() == {"writable_share": 0.75, "nearest_score": 0.1, "diffused_score": 0.2}
+
+
+def test_the_aim_puts_the_brightest_pixel_at_255_where_the_target_does_not_reach_it():
+    levels = np.full((8, 8), 100, np.uint8)
+    levels[3, 4] = levels[5, 5] = 240
+    levels[0, 0] = 33
+    aimed = aimed_levels(levels)
+    assert aimed[3, 4] == 255 and aimed[5, 5] == 240  # the first brightest pixel: the scanner's maximum
+    others = np.ones(levels.shape, bool)
+    others[3, 4] = False
+    assert np.array_equal(aimed[others], error_diffused(levels)[others])
+    levels[7, 7] = 255
+    assert np.array_equal(aimed_levels(levels), error_diffused(levels))
