@@ -82,7 +82,9 @@ FIELD_BUDGET_CAP_S = 45.0
 #: (4–7 s of a 6–9 s default run, stage 3 then stopping at once). With
 #: ``--time-budget 5``, 0.5, 0.6 and 0.7 gave Uniform B 0.99685, 0.99998
 #: and 0.999999 and ended 5.4, 5.2 and 5.8 s into the run (orange and skin_0
-#: at or within 1e−7 of their ceiling at 0.6 and 0.7; docs/benchmarks.md).
+#: at or within 1e−7 of their ceiling at 0.6 and 0.7; measured in one
+#: process with the projections then given a third of what the display fit
+#: left, before :data:`octcl.host.linear.PROJECTION_SHARE`; docs/benchmarks.md).
 LINEAR_FIELD_BUDGET_FRACTION = 0.6
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
 #: over them); in the linear regime those of the first display fit, the
@@ -430,9 +432,12 @@ def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed,
 def _linear_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell, exact_score) -> _Start:
     """Stages 1–2 in the linear regime (:mod:`octcl.host.linear`); draws nothing at random.
 
-    Stage 1 is :func:`~octcl.host.linear.linear_start`, display fits of
-    ``iterations`` and half as many steps, each followed by projections,
-    judged by the exact score; stage 2 :func:`~octcl.host.linear.decode_exact`.
+    The aim is :func:`~octcl.host.ceiling.aimed_levels` of the target. Stage 1
+    is :func:`~octcl.host.linear.linear_start`: a display fit of
+    ``iterations`` steps, projections and the hinge fit towards the aimed
+    levels (a half-length candidate only where that one falls short);
+    stage 2 :func:`~octcl.host.linear.decode_exact`. The aim goes on to
+    stage 3, which does nothing where the start renders it.
     """
     from .linear import ENERGY_FLOOR_PCT, decode_exact, linear_start
 
