@@ -58,7 +58,6 @@ import numpy as np
 from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
-from octcl.render import render
 
 from .ceiling import WRITABLE, aimed_levels, measure_ceiling
 from .field import target_levels
@@ -628,10 +627,11 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     seconds["total"] = elapsed()
     tell("done", result.iterations, schedule.total_iterations, done=True)
     # After the last write, so that it takes nothing from the budget: the ceiling of the target (up to two
-    # exact scores, none for a target the scanner could have written) and where the phantom stands under it.
+    # exact scores, none for a target the scanner could have written) and where the phantom stands under it
+    # (the levels its score was computed from).
     levels = target_levels(target_scan(target), config)
     ceiling = measure_ceiling(levels, lambda image: exact_score(image)["mean"])
-    rendered = render(result.phantom, config).levels
+    rendered = result.levels
 
     outcome = InvertResult(
         target=name, output=str(output_path), score=result.components["mean"],

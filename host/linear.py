@@ -256,20 +256,29 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
             break
         ahead = field + MOMENTUM * (field - previous)
         a_scans = operator.apply(ahead)
-        magnitude = np.abs(a_scans)
-        clipped = np.clip(magnitude, lower, upper)
-        # P_𝓜: the phase kept, the magnitude clipped; a pixel at exactly 0 gets phase 0.
-        projected = np.where(magnitude > 0, a_scans * (clipped / np.where(magnitude > 0, magnitude, 1.0)), clipped)
-        previous, field = field, ahead + STEP * operator.pseudo_inverse(projected - a_scans)
+        previous, field = field, ahead + STEP * operator.pseudo_inverse(_project(a_scans, lower, upper) - a_scans)
         taken += 1
         if progress is not None:
             progress(taken, iterations)
+    return _normalised_fit(operator, field, aimed, taken, time.perf_counter() - start, clock_steps)
+
+
+def _project(a_scans: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """P_𝓜: each pixel's magnitude clipped into [lower, upper], its phase kept (phase 0 at exactly 0)."""
+    magnitude = np.abs(a_scans)
+    clipped = np.clip(magnitude, lower, upper)
+    return np.where(magnitude > 0, a_scans * (clipped / np.where(magnitude > 0, magnitude, 1.0)), clipped)
+
+
+def _normalised_fit(operator: FieldOperator, field: np.ndarray, aimed: np.ndarray, iterations: int,
+                    seconds: float, clock_steps: int) -> LinearFit:
+    """The :class:`LinearFit` of ``field`` scaled so that max|A(F)| = 1, ``identical`` counted against ``aimed``."""
     a_scans = operator.apply(field)
     scale = np.abs(a_scans).max()
-    field, a_scans = field / scale, a_scans / scale
-    rendering = Rendering.from_a_scans(a_scans)
-    return LinearFit(field=field, display=rendering.display, identical=float(np.mean(rendering.levels == aimed)),
-                     iterations=taken, seconds=time.perf_counter() - start, clock_steps=clock_steps)
+    rendering = Rendering.from_a_scans(a_scans / scale)
+    return LinearFit(field=field / scale, display=rendering.display,
+                     identical=float(np.mean(rendering.levels == aimed)), iterations=iterations, seconds=seconds,
+                     clock_steps=clock_steps)
 
 
 # -------------------------------------------------------------- intervals
@@ -343,12 +352,12 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
     lower, upper = _anchored_bounds(aim, np.abs(operator.apply(field)), margin)
     shape, size = field.shape, field.size
 
+    def as_field(vector):  # L-BFGS works on the real vector (Re F, Im F)
+        return vector[:size].reshape(shape) + 1j * vector[size:].reshape(shape)
+
     def loss_and_gradient(vector):
-        a_scans = operator.apply(vector[:size].reshape(shape) + 1j * vector[size:].reshape(shape))
-        magnitude = np.abs(a_scans)
-        clipped = np.clip(magnitude, lower, upper)
-        residual = a_scans - np.where(magnitude > 0, a_scans * (clipped / np.where(magnitude > 0, magnitude, 1.0)),
-                                      clipped)
+        a_scans = operator.apply(as_field(vector))
+        residual = a_scans - _project(a_scans, lower, upper)
         gradient = operator.adjoint(residual)
         return 0.5 * float(np.vdot(residual, residual).real), np.concatenate([gradient.real.ravel(),
                                                                              gradient.imag.ravel()])
@@ -363,22 +372,14 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
             clock_steps = 1
             raise StopIteration
         if taken % LEVEL_CHECK_EVERY == 0:
-            vector = intermediate_result.x
-            a_scans = operator.apply(vector[:size].reshape(shape) + 1j * vector[size:].reshape(shape))
-            if np.array_equal(Rendering.from_a_scans(a_scans).levels, aim):
+            if np.array_equal(Rendering.from_a_scans(operator.apply(as_field(intermediate_result.x))).levels, aim):
                 raise StopIteration
 
     found = scipy.optimize.minimize(loss_and_gradient, np.concatenate([field.real.ravel(), field.imag.ravel()]),
                                     jac=True, method="L-BFGS-B", callback=stop_when_done,
                                     options={"maxiter": iterations, "maxcor": LEVEL_FIT_MEMORY, "ftol": 0.0,
                                              "gtol": 0.0})
-    field = found.x[:size].reshape(shape) + 1j * found.x[size:].reshape(shape)
-    a_scans = operator.apply(field)
-    scale = np.abs(a_scans).max()
-    field, a_scans = field / scale, a_scans / scale
-    rendering = Rendering.from_a_scans(a_scans)
-    return LinearFit(field=field, display=rendering.display, identical=float(np.mean(rendering.levels == aim)),
-                     iterations=taken, seconds=time.perf_counter() - start, clock_steps=clock_steps)
+    return _normalised_fit(operator, as_field(found.x), aim, taken, time.perf_counter() - start, clock_steps)
 
 
 # ------------------------------------------------------------------- start

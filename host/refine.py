@@ -344,13 +344,14 @@ class RefineSchedule:
 
 @dataclass
 class Checkpoint:
-    """A scored phantom: the depths and log-energies with their exact score."""
+    """A scored phantom: the depths and log-energies with their exact score and the levels it scored."""
 
     z_um: np.ndarray
     log_energy: np.ndarray
     components: dict
     stage: str
     iteration: int
+    levels: np.ndarray
 
     @property
     def score(self) -> float:
@@ -422,6 +423,9 @@ class RefineResult:
         The Adam steps (restarts included, as ``iterations`` counts them)
         after which the main run fell and went back to the best phantom
         (:attr:`RefineSchedule.max_falls`).
+    levels : ndarray of uint8
+        The 8-bit levels of the best phantom's rendering, the ones its
+        ``components`` score.
     """
 
     phantom: Phantom
@@ -435,6 +439,7 @@ class RefineResult:
     stop_reason: str
     torch_threads: int
     falls: list
+    levels: np.ndarray
 
 
 def check_target_score(target_score) -> None:
@@ -758,12 +763,12 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         if target_score is not None and best.score >= target_score:
             stop_reason = "target score"
 
-    def consider(components, stage, iteration, z, u):
-        """Keep (z, u) if it beats the best, then :func:`reach_target`."""
+    def consider(components, stage, iteration, z, u, levels):
+        """Keep (z, u) and its rendering's ``levels`` if it beats the best, then :func:`reach_target`."""
         nonlocal best, last_score
         last_score = (components["mean"], time.monotonic())
         if components["mean"] > best.score:
-            best = Checkpoint(z.copy(), u.copy(), components, stage, iteration)
+            best = Checkpoint(z.copy(), u.copy(), components, stage, iteration, levels)
             if on_improvement:
                 on_improvement(as_phantom(z, u), components)
         reach_target()
@@ -804,7 +809,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                     components = refiner.score(rendering)
                     trace.append({"time_s": time.monotonic() - started, "stage": stage,
                                   "iteration": step, "loss": None, "score": components["mean"]})
-                    consider(components, stage, step, z, u)
+                    consider(components, stage, step, z, u, rendering.levels)
                     report(stage)
                 return False
             scored = step in checkpoints and step > 0 and clock.fits("score")
@@ -817,7 +822,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
             if scored:
                 components = refiner.score(rendering)
                 entry["score"] = components["mean"]
-                consider(components, stage, step, z, u)
+                consider(components, stage, step, z, u, rendering.levels)
                 best_after.append(best.score)
                 patience = schedule.patience
                 stalled = bool(patience and len(best_after) > patience
@@ -852,7 +857,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         refiner.threads.before_call()  # exact scores, the first included, at the loss's thread count
         rendering = refiner.render(z_um, log_energy, for_adjoint=False)
         initial = refiner.score(rendering)
-        best = Checkpoint(z_um.copy(), log_energy.copy(), initial, "initial", 0)
+        best = Checkpoint(z_um.copy(), log_energy.copy(), initial, "initial", 0, rendering.levels)
         if aim is not None and np.array_equal(rendering.levels, aim):
             stop_reason = "ceiling"
         last_score = (initial["mean"], time.monotonic())
@@ -884,7 +889,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                         initial_components=initial, iterations=iterations, trace=trace,
                         timings_s=dict(refiner.timings), cpu_s=dict(refiner.cpu_seconds),
                         stopped_by_deadline=stop_reason == "deadline", stop_reason=stop_reason or "schedule",
-                        torch_threads=refiner.threads.threads, falls=falls)
+                        torch_threads=refiner.threads.threads, falls=falls, levels=best.levels)
 
 
 __all__ = ["Checkpoint", "FALL_LR_FACTOR", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule",

@@ -81,6 +81,8 @@ GREY_LUT = _matplotlib_grey_lut()
 #: without an expected shape must have (every scan the challenge ships is this
 #: size; a PNG read without one may have any, :data:`MAX_IMAGE_PIXELS`).
 SCAN_SHAPE = (256, 512)
+#: Suffixes of scan files where a folder is searched for them (a file's kind is told by its first bytes).
+SCAN_SUFFIXES = (".png", ".npy")
 #: The most pixels of a PNG read without an expected shape (``octcl maps`` of
 #: a scan of any size): 4096x4096, 128 times a 256x512 B-scan. The header's
 #: size is checked before any pixel is decoded, so a file that claims a huge

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import SCAN_SHAPE
+from ._io import SCAN_SHAPE, SCAN_SUFFIXES
 
 MAP_NAMES = ("Struct", "OAC", "SC", "RSC")
 COMPONENTS = tuple(f"msssim_{name}" for name in MAP_NAMES) + tuple(
@@ -37,8 +37,6 @@ COMPONENTS = tuple(f"msssim_{name}" for name in MAP_NAMES) + tuple(
 )
 # Files in a scan directory that are maps of a scan, not scans.
 _MAP_FILE_SUFFIXES = ("_OAC.png", "_SC.png", "_RSC.png")
-# Suffixes of scan files in a folder of references or predictions (the kind is told by the bytes).
-_SCAN_SUFFIXES = (".png", ".npy")
 # skimage's rgb2gray luminance weights (ITU-R BT.709 primaries).
 _LUMINANCE = (0.2125, 0.7154, 0.0721)
 
@@ -225,7 +223,7 @@ def score_directories(ref_dir, pred_dir, progress=None) -> dict:
     """
     ref_dir, pred_dir = Path(ref_dir), Path(pred_dir)
     names = sorted(
-        path.name for suffix in _SCAN_SUFFIXES for path in ref_dir.glob(f"*{suffix}")
+        path.name for suffix in SCAN_SUFFIXES for path in ref_dir.glob(f"*{suffix}")
         if not path.name.endswith(_MAP_FILE_SUFFIXES)
     )
     if not names:
@@ -252,7 +250,7 @@ def score_directories(ref_dir, pred_dir, progress=None) -> dict:
 def _prediction(pred_dir: Path, ref_name: str) -> Path | None:
     """The prediction of the reference scan ``ref_name``: the same name, else the other scan suffix; or None."""
     ref = Path(ref_name)
-    candidates = [ref.name] + [ref.stem + suffix for suffix in _SCAN_SUFFIXES if suffix != ref.suffix]
+    candidates = [ref.name] + [ref.stem + suffix for suffix in SCAN_SUFFIXES if suffix != ref.suffix]
     return next((pred_dir / name for name in candidates if (pred_dir / name).is_file()), None)
 
 

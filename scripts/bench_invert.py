@@ -147,13 +147,14 @@ def spread(scores: list[float]) -> dict:
             "max": float(max(scores)), "min_significant_difference": bound}
 
 
-def time_to_scores(trace: list[dict], final: float) -> dict:
+def time_to_scores(trace: list[dict], final: float, others: dict | None = None) -> dict:
     """Seconds from the run's start until its best exact score first reached each of :data:`SCORE_LEVELS`.
 
-    ``final`` is the run's final score; its level is final − 1e−4. None where
+    ``final`` is the run's final score; its level is final − 1e−4. ``others``
+    adds {label: score} (the target's ceiling images' scores). None where
     never reached.
     """
-    levels = {**{f"{level:g}": level for level in SCORE_LEVELS}, "final-1e-4": final - 1e-4}
+    levels = {**{f"{level:g}": level for level in SCORE_LEVELS}, "final-1e-4": final - 1e-4, **(others or {})}
     scored = [(entry["time_s"], entry["score"]) for entry in trace if entry.get("score") is not None]
     return {label: next((t for t, score in scored if score >= level), None) for label, level in levels.items()}
 
@@ -216,12 +217,9 @@ def main(argv=None) -> int:
                         handle.write(comparison_panel(target_array, levels,
                                                       f"{name}, seed {seed}: score {components['mean']:.5f} after "
                                                       f"{report['seconds']['total']:.0f} s"))
-                reached = time_to_scores(report["trace"], components["mean"])
                 ceiling = report["ceiling"]
-                oracles = {"nearest": ceiling["nearest_score"], "diffused": ceiling["diffused_score"]}
-                scored = [(entry["time_s"], entry["score"]) for entry in report["trace"] if entry.get("score") is not None]
-                reached.update({label: next((t for t, score in scored if score >= level), None)
-                                for label, level in oracles.items()})
+                reached = time_to_scores(report["trace"], components["mean"],
+                                         {"nearest": ceiling["nearest_score"], "diffused": ceiling["diffused_score"]})
                 rows[run] = {"scan": name, "schedule": schedule, "seed": seed,
                              **{c: components[c] for c in COMPONENTS},
                              "mean": components["mean"], "initial_score": report["initial_score"],

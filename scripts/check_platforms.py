@@ -104,7 +104,8 @@ def wheel_requirements(folder: Path) -> list[str]:
 
 def resolve(requirements: list[Requirement], platform: str, python: str, scratch: Path) -> dict[str, str]:
     """{requirement: wheel file pip chooses for it}, or {requirement: "NO WHEEL: pip's error"}."""
-    def pip(names: list[str]) -> subprocess.CompletedProcess:
+    def pip(names: list[str]) -> tuple[dict | None, str]:
+        """pip's choice for ``names``: (its ``--report``, or None where it found no wheel; its standard error)."""
         report = scratch / "report.json"
         command = [sys.executable, "-m", "pip", "install", "--dry-run", "--ignore-installed", "--no-deps",
                    "--only-binary", ":all:", *[f"--platform={tag}" for tag in pip_tags(platform)],
@@ -112,23 +113,24 @@ def resolve(requirements: list[Requirement], platform: str, python: str, scratch
                    "--implementation", "cp", "--target", str(scratch / "target"), "--no-cache-dir",
                    "--disable-pip-version-check", "--quiet", "--report", str(report), *names]
         result = subprocess.run(command, capture_output=True, text=True)
-        result.report = json.loads(report.read_text()) if result.returncode == 0 else None
-        return result
+        return (json.loads(report.read_text()) if result.returncode == 0 else None), result.stderr
+
+    def wheel_file(item: dict) -> str:
+        return item["download_info"]["url"].rsplit("/", 1)[-1]
 
     names = [str(requirement) for requirement in requirements]
-    result = pip(names)
-    if result.returncode == 0:
-        chosen = {item["metadata"]["name"].lower().replace("_", "-"): item["download_info"]["url"].rsplit("/", 1)[-1]
-                  for item in result.report["install"]}
+    report, _ = pip(names)
+    if report is not None:
+        chosen = {item["metadata"]["name"].lower().replace("_", "-"): wheel_file(item) for item in report["install"]}
         return {name: chosen.get(Requirement(name).name.lower().replace("_", "-"), "?") for name in names}
     outcome = {}
     for name in names:  # one at a time, to name each that fails
-        single = pip([name])
-        if single.returncode == 0:
-            outcome[name] = single.report["install"][0]["download_info"]["url"].rsplit("/", 1)[-1]
+        single, stderr = pip([name])
+        if single is not None:
+            outcome[name] = wheel_file(single["install"][0])
         else:
-            error = [line for line in single.stderr.splitlines() if line.startswith("ERROR")]
-            outcome[name] = "NO WHEEL: " + (error[0] if error else single.stderr.strip()[-200:])
+            error = [line for line in stderr.splitlines() if line.startswith("ERROR")]
+            outcome[name] = "NO WHEEL: " + (error[0] if error else stderr.strip()[-200:])
     return outcome
 
 

@@ -26,14 +26,13 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from octcl._io import SCAN_SUFFIXES
 from octcl.scorer import _MAP_FILE_SUFFIXES
 
 #: Files a batch writes for each scan, by kind: the phantom, invert's report
 #: (with the batch record), the target/rendering comparison panel and the
 #: score-against-time plot.
 OUTPUT_SUFFIXES = {"phantom": ".txt", "report": ".report.json", "panel": ".panel.png", "plot": ".score.png"}
-#: Suffixes of target files.
-TARGET_SUFFIXES = (".png", ".npy")
 
 
 @dataclass(frozen=True)
@@ -61,7 +60,7 @@ class Scan:
 
 
 def _is_target(file_name: str) -> bool:
-    return (file_name.endswith(TARGET_SUFFIXES) and not file_name.startswith(".")
+    return (file_name.endswith(SCAN_SUFFIXES) and not file_name.startswith(".")
             and not file_name.endswith(_MAP_FILE_SUFFIXES)
             and not file_name.endswith(tuple(OUTPUT_SUFFIXES.values())))
 
