@@ -41,12 +41,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
-import torch
 
 from .. import _reference as ref
 from .._io import GREY_LUT
 from ..config import DEFAULT_CONFIG, ScannerConfig
 from ..render import DISPLAY_SLOPE, Rendering
+from .adam import Adam
 
 #: Adam's step size in (ln|F|, phase) units: 5 % in magnitude, 0.05 rad in phase.
 LEARNING_RATE = 0.05
@@ -215,9 +215,12 @@ class FieldOperator:
         P.
     transfer : ndarray of complex128, (Nz, P)
         w_q·ĝ_p, the 2-D DFT of the point response.
+    workers : int
+        Threads of the FFTs (``scipy.fft``'s ``workers``). Each 1-D transform
+        is one thread's, so the result has the same bits at any count.
     """
 
-    def __init__(self, config: ScannerConfig = DEFAULT_CONFIG):
+    def __init__(self, config: ScannerConfig = DEFAULT_CONFIG, workers: int = 1):
         self.config = config
         self.cell_depth_um = cell_depths_um(config)
         self.taps = lateral_taps(config)
@@ -227,32 +230,33 @@ class FieldOperator:
         kernel[np.arange(-reach, reach + 1)] = self.taps  # offset d at column d mod P
         window = ref.hann_window(config.depth_pixels)
         self.transfer = window[:, None] * np.fft.fft(kernel)[None, :]
-        self._torch_transfer = {}
+        self._transfers = {(single, conjugate): (np.conj(self.transfer) if conjugate else self.transfer)
+                           .astype(np.complex64 if single else np.complex128)
+                           for single in (False, True) for conjugate in (False, True)}
+        self.workers = workers
+        self._inverses = {}  # regularisation → conj(H)/(|H|² + λ), for pseudo_inverse
 
     def apply(self, field: np.ndarray) -> np.ndarray:
-        """A-scans A[n, i] (complex128, (Nz, Nx)) of the field F[n, i]."""
+        """A-scans A[n, i] ((Nz, Nx), complex of the field's precision) of the field F[n, i]."""
         nz, nx = self.config.shape
-        spectrum = np.fft.fft2(field, s=(nz, self.padded_columns))
-        return np.fft.ifft2(spectrum * self.transfer)[:, :nx]
-
-    def apply_torch(self, field: torch.Tensor) -> torch.Tensor:
-        """:meth:`apply` in torch (complex64 or complex128), differentiable."""
-        nz, nx = self.config.shape
-        transfer = self._torch_transfer.get(field.dtype)
-        if transfer is None:
-            transfer = self._torch_transfer[field.dtype] = torch.as_tensor(self.transfer).to(field.dtype)
-        spectrum = torch.fft.fft2(field, s=(nz, self.padded_columns))
-        return torch.fft.ifft2(spectrum * transfer)[:, :nx]
+        spectrum = scipy.fft.fft2(field, s=(nz, self.padded_columns), workers=self.workers)
+        return scipy.fft.ifft2(spectrum * self._transfer_as(spectrum), workers=self.workers)[:, :nx]
 
     def adjoint(self, a_scans: np.ndarray) -> np.ndarray:
-        """Hᴴ: the adjoint of :meth:`apply` (⟨H·F, A⟩ = ⟨F, Hᴴ·A⟩), complex128 (Nz, Nx).
+        """Hᴴ: the adjoint of :meth:`apply` (⟨H·F, A⟩ = ⟨F, Hᴴ·A⟩), (Nz, Nx).
 
         The crop's adjoint pads the columns with zeros; the 2-D circular
         convolution's is the one with the conjugate transfer function.
         """
         nz, nx = self.config.shape
-        spectrum = np.fft.fft2(a_scans, s=(nz, self.padded_columns))
-        return np.fft.ifft2(spectrum * np.conj(self.transfer))[:, :nx]
+        spectrum = scipy.fft.fft2(a_scans, s=(nz, self.padded_columns), workers=self.workers)
+        return scipy.fft.ifft2(spectrum * self._transfer_as(spectrum, conjugate=True), workers=self.workers)[:, :nx]
+
+    def _transfer_as(self, spectrum: np.ndarray, conjugate: bool = False) -> np.ndarray:
+        """The transfer function (or its conjugate) in the spectrum's precision: complex64 keeps a float32
+        fit in float32."""
+        single = spectrum.dtype == np.complex64
+        return self._transfers[single, conjugate]
 
     def pseudo_inverse(self, a_scans: np.ndarray, regularisation: float = REGULARISATION) -> np.ndarray:
         """Tikhonov-regularised inverse: the F minimising ‖A(F) − a_scans‖² + λ·‖F‖².
@@ -261,10 +265,12 @@ class FieldOperator:
         λ = ``regularisation``·max|H|²; the padding columns are dropped.
         """
         nz, nx = self.config.shape
-        spectrum = np.fft.fft2(a_scans, s=(nz, self.padded_columns))
-        damping = regularisation * np.max(np.abs(self.transfer)) ** 2
-        inverse = np.conj(self.transfer) / (np.abs(self.transfer) ** 2 + damping)
-        return np.fft.ifft2(spectrum * inverse)[:, :nx]
+        spectrum = scipy.fft.fft2(a_scans, s=(nz, self.padded_columns), workers=self.workers)
+        inverse = self._inverses.get(regularisation)
+        if inverse is None:
+            damping = regularisation * np.max(np.abs(self.transfer)) ** 2
+            inverse = self._inverses[regularisation] = np.conj(self.transfer) / (np.abs(self.transfer) ** 2 + damping)
+        return scipy.fft.ifft2(spectrum * inverse, workers=self.workers)[:, :nx]
 
 
 # --------------------------------------------------------------------- fit
@@ -287,7 +293,7 @@ class FieldFit:
     seconds : float
         Wall time of the fit, initialisation included.
     threads : int
-        torch CPU threads used.
+        FFT threads used (:attr:`FieldOperator.workers`).
     clock_steps : int
         Steps whose learning rate the clock set (the fit had fallen behind
         its time budget, :func:`fit_field`); 0: the fit took no decision
@@ -304,61 +310,117 @@ class FieldFit:
     clock_steps: int
 
 
-def _high_pass(image: torch.Tensor) -> torch.Tensor:
-    """X − box3(X): the image minus its 3×3 mean (edges replicated).
-
-    The box sum is taken as shifted slices, a third of the time of
-    ``avg_pool2d`` with its backward pass on a 256×512 image. The edges are
-    replicated by concatenation: the backward pass of ``pad(mode="replicate")``
-    adds up its edge gradients in an order that changes with torch's thread
-    count (see :func:`_sum`).
-    """
-    padded = torch.cat([image[:1], image, image[-1:]])
-    padded = torch.cat([padded[:, :1], padded, padded[:, -1:]], dim=1)
+def _box3(image: np.ndarray) -> np.ndarray:
+    """The 3×3 mean of an image, its edges replicated."""
+    padded = np.pad(image, 1, mode="edge")
     rows = padded[:-2] + padded[1:-1] + padded[2:]
-    return image - (rows[:, :-2] + rows[:, 1:-1] + rows[:, 2:]) / 9.0
+    return (rows[:, :-2] + rows[:, 1:-1] + rows[:, 2:]) / 9.0
 
 
-def _sum(image: torch.Tensor) -> torch.Tensor:
-    """The sum of a 2-D tensor with the same bits at every thread count.
+def _box3_adjoint(image: np.ndarray) -> np.ndarray:
+    """The adjoint of :func:`_box3`: each value spread over its 3×3 window of the padded image, the
+    padding then folded back onto the edge it replicates."""
+    nz, nx = image.shape
+    spread = np.zeros((nz + 2, nx + 2), dtype=image.dtype)
+    for row in range(3):
+        for column in range(3):
+            spread[row:row + nz, column:column + nx] += image
+    spread[1] += spread[0]
+    spread[-2] += spread[-1]
+    spread[:, 1] += spread[:, 0]
+    spread[:, -2] += spread[:, -1]
+    return spread[1:-1, 1:-1] / 9.0
 
-    torch splits a whole-tensor sum between its threads, so its rounding,
-    and with it the path of the non-convex fit, changes with the thread
-    count. A sum along the rows is split by row (each row summed by one
-    thread), and the Nz row sums are too few to split, so this sum's order
-    never changes: the fit is the same, bit for bit, at any thread count
-    (``tests/test_field.py``); FFTs, element-wise operations and the
-    maxima are so already.
+
+def _high_pass(image: np.ndarray) -> np.ndarray:
+    """hp(X) = X − box3(X): the image minus its 3×3 mean (edges replicated)."""
+    return image - _box3(image)
+
+
+@dataclass
+class DisplayGoal:
+    """What :func:`display_loss` compares a field's display with: the de-quantised target.
+
+    Attributes
+    ----------
+    display : ndarray, (Nz, Nx)
+        D* (:func:`target_display`), in the fit's precision.
+    high_pass : ndarray, (Nz, Nx)
+        hp(D*).
+    visible : ndarray of bool, (Nz, Nx)
+        D* > 0: the pixels above level 0.
+    energy_weight : float
+        λ_E.
     """
-    return image.sum(dim=1).sum()
+
+    display: np.ndarray
+    high_pass: np.ndarray
+    visible: np.ndarray
+    energy_weight: float
+
+    @classmethod
+    def of(cls, levels: np.ndarray, energy_weight: float = ENERGY_WEIGHT, dtype=np.float32) -> "DisplayGoal":
+        display = target_display(levels).astype(dtype)
+        return cls(display, _high_pass(display), display > 0, energy_weight)
 
 
-def _mean(image: torch.Tensor) -> torch.Tensor:
-    """The mean of a 2-D tensor with the same bits at every thread count (:func:`_sum`)."""
-    return _sum(image) / image.numel()
+def display_loss(field: np.ndarray, operator: FieldOperator, goal: DisplayGoal) -> tuple[float, np.ndarray]:
+    """The display fit's loss of a field and its gradient, derived by hand (:func:`fit_field`).
 
+    With A = H·F, P = |A|², m the first brightest pixel, c = 10⁻²⁴·P_m
+    (held constant), s = :data:`octcl.render.DISPLAY_SLOPE` and N pixels:
 
-class _MinusMax(torch.autograd.Function):
-    """X − max X for a 2-D tensor, with a backward pass of the same bits at every thread count.
+        ℓ = ½·ln(P + c),  D = 1 + s·(ℓ − ℓ_m),
+        D̃ = max(D, −1) where the target is visible, max(D, 0) at level 0,
+        e = D̃ − D*,  r = hp(D̃) − hp(D*),
+        L = Σ(|e| + e²)/N + ½·Σ|r|/N + λ_E·(Σ|F|²/N)/P_m.
 
-    ∂/∂X_k of Σ G·(X − max X) is G_k − [k = argmax]·Σ G: autograd's own
-    backward of the broadcast subtraction takes Σ G as a whole-tensor sum,
-    split between threads; here it is :func:`_sum`. Of tied
-    maxima the first carries the gradient.
+    Backwards, with sgn(0) = 0 and the clamps passing the gradient where
+    D is at or above their bound:
+
+        ∂L/∂D̃ = (sgn e + 2e)/N + ½·hpᵀ(sgn r)/N,   hpᵀ(Y) = Y − box3ᵀ(Y),
+        ∂L/∂ℓ = s·∂L/∂D − δ_m·s·Σ ∂L/∂D,
+        G_A = ∂L/∂ℓ · A/(P + c) − δ_m·2A_m·λ_E·(Σ|F|²/N)/P_m²,
+        G_F = Hᴴ·G_A + 2λ_E·F/(N·P_m),
+
+    G = ∂L/∂Re + i·∂L/∂Im, so that dL = Re Σ conj(G)·dF (Wirtinger; for
+    dℓ = Re(conj(A)·dA)/(P + c) and dP = 2·Re(conj(A)·dA)).
+    ``tests/test_field.py`` checks it against finite differences and
+    against torch's autograd of the same loss.
+
+    Returns
+    -------
+    loss : float
+    gradient : ndarray of complex, (Nz, Nx)
+        G_F.
     """
+    a_scans = operator.apply(field)
+    power = a_scans.real**2 + a_scans.imag**2
+    brightest = np.unravel_index(np.argmax(power), power.shape)
+    peak = power[brightest]
+    shifted = power + 1e-24 * peak
+    log_amplitude = 0.5 * np.log(shifted)
+    display = 1.0 + DISPLAY_SLOPE * (log_amplitude - log_amplitude[brightest])
+    floor = np.where(goal.visible, DISPLAY_GRADIENT_FLOOR, 0.0).astype(display.dtype)
+    clamped = np.maximum(display, floor)
+    error = clamped - goal.display
+    residual = _high_pass(clamped) - goal.high_pass
+    count = error.size
+    energy = float((field.real**2 + field.imag**2).sum(dtype=np.float64)) / count
+    loss = (float(np.abs(error).sum(dtype=np.float64) + (error**2).sum(dtype=np.float64)) / count
+            + HIGH_PASS_WEIGHT * float(np.abs(residual).sum(dtype=np.float64)) / count
+            + goal.energy_weight * energy / float(peak))
 
-    @staticmethod
-    def forward(ctx, image):
-        brightest = image.argmax()
-        ctx.save_for_backward(brightest)
-        return image - image.reshape(-1)[brightest]
-
-    @staticmethod
-    def backward(ctx, grad):
-        (brightest,) = ctx.saved_tensors
-        result = grad.clone()
-        result.reshape(-1)[brightest] -= _sum(grad)
-        return result
+    residual_sign = np.sign(residual)
+    d_clamped = (np.sign(error) + 2.0 * error + HIGH_PASS_WEIGHT * (residual_sign - _box3_adjoint(residual_sign))) \
+        / count
+    d_display = np.where(display >= floor, d_clamped, 0.0)
+    d_log = DISPLAY_SLOPE * d_display
+    d_log[brightest] -= DISPLAY_SLOPE * d_display.sum(dtype=np.float64)
+    d_a_scans = (d_log / shifted) * a_scans
+    d_a_scans[brightest] -= 2.0 * a_scans[brightest] * goal.energy_weight * energy / float(peak) ** 2
+    gradient = operator.adjoint(d_a_scans) + (2.0 * goal.energy_weight / (count * float(peak))) * field
+    return loss, gradient.astype(field.dtype, copy=False)
 
 
 def _available_cores() -> int:
@@ -381,10 +443,10 @@ def _available_cores() -> int:
 def _thread_trials(threads: int | None, iterations: int) -> list[int]:
     """Thread counts for the first steps of a fit; after them the fastest is kept.
 
-    Several OpenMP threads beat one on an idle machine, but when other
-    processes hold the cores every thread barrier waits for a descheduled
-    thread: measured here, an element-wise op on a 256×512 image took 12 ms
-    with 2 threads against 40 µs with 1. Timing real steps picks whichever
+    Several threads beat one on an idle machine, but when other processes
+    hold the cores every thread barrier waits for a descheduled thread:
+    measured here, an element-wise op on a 256×512 image took 12 ms with 2
+    OpenMP threads against 40 µs with 1. Timing real steps picks whichever
     holds now. The first step (FFT plans, allocations) is a warm-up and is
     not timed; then two steps with 1 thread and two with every core.
     """
@@ -396,7 +458,7 @@ def _thread_trials(threads: int | None, iterations: int) -> list[int]:
 
 def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 1500,
               time_budget_s: float | None = 40.0, energy_weight: float = ENERGY_WEIGHT,
-              threads: int | None = None, dtype: torch.dtype = torch.float32,
+              threads: int | None = None, dtype=np.float32,
               progress=None, initial: np.ndarray | None = None) -> FieldFit:
     """Fit the complex field F of the linear scanner to a target B-scan (stage 1).
 
@@ -430,7 +492,7 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     phase: a non-negative image is mostly low-frequency, so the operator's
     pass band carries it and A(F₀) already has the target's speckle.
     Measured (MS-SSIM of the fitted display, 8-bit; about 20 ms of CPU a
-    step, so 100 steps ≈ 2 s), for this start, the de-logged magnitude with
+    step in torch then, so 100 steps ≈ 2 s), for this start, the de-logged magnitude with
     random phases as F₀, and the inverse of the magnitude with random phases:
 
     ============  =========================  =========================
@@ -451,8 +513,12 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     ahead of the clock's term (all of them on two idle cores: 1500 steps in
     11–12 s of a 45 s share) takes no decision from the clock. Then, or
     without a time budget, the fit depends on nothing but the target and
-    the iterations: it is the same, bit for bit, at any thread count
-    (:func:`_mean`, :class:`_MinusMax`, ``scripts/check_determinism.py``).
+    the iterations: it is the same, bit for bit, at any thread count (each
+    1-D FFT is one thread's, the sums NumPy's own; ``scripts/check_determinism.py``).
+
+    The loss's gradient is derived by hand (:func:`display_loss`) and the
+    step is :class:`octcl.host.adam.Adam`: no torch, whose import and
+    optimiser took 3.3 s of a 7–9 s command on two cores.
 
     Parameters
     ----------
@@ -470,15 +536,15 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     energy_weight : float
         λ_E, the weight of the field-energy term.
     threads : int, optional
-        torch CPU threads. By default 1 and all available cores are each
-        timed on two steps and the faster is kept (see :func:`_thread_trials`);
-        a fit of fewer than 5 steps, or on one core, uses 1. The previous
-        setting is restored on return.
-    dtype : torch.float32 or torch.float64
-        Precision of the fit. float32 measured 19–23 ms of CPU a step
-        against 36–38 ms for float64 (one thread, 300 steps), the fitted
-        display's MS-SSIM the same within the run-to-run spread (±1e−4;
-        rounding differences grow along the non-convex descent).
+        FFT threads (:attr:`FieldOperator.workers`). By default 1 and all
+        available cores are each timed on two steps and the faster is kept
+        (see :func:`_thread_trials`); a fit of fewer than 5 steps, or on one
+        core, uses 1.
+    dtype : numpy.float32 or numpy.float64
+        Precision of the fit (complex64 or complex128 FFTs). float32 took
+        21 ms a step against 23 ms for float64 on two cores of an AMD EPYC
+        (50 steps on Uniform A, one FFT thread), with the loss the same
+        to 1e−5 after 50 steps.
     progress : callable, optional
         Called as ``progress(iteration, iterations, loss)`` after each step.
 
@@ -489,78 +555,57 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     start = time.perf_counter()
     if iterations < 1 or not (time_budget_s is None or time_budget_s > 0):
         raise ValueError(f"need iterations ≥ 1 and time_budget_s > 0, got {iterations}, {time_budget_s}")
-    if dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be numpy.float32 or numpy.float64, got {dtype}")
     levels = target_levels(target, config)
-    operator = FieldOperator(config)
-    goal_display = target_display(levels)
+    operator = FieldOperator(config, workers=threads or 1)
+    goal = DisplayGoal.of(levels, energy_weight, dtype)
     if initial is None:
         initial = operator.pseudo_inverse(target_magnitude(levels))
     initial = initial / np.abs(operator.apply(initial)).max()
     magnitude = np.abs(initial)
     floor = 1e-12 * magnitude.max()  # ln|F| of an exactly cancelled cell
-    log_magnitude = torch.tensor(np.log(np.maximum(magnitude, floor)), dtype=dtype, requires_grad=True)
-    phase = torch.tensor(np.angle(initial), dtype=dtype, requires_grad=True)
-
-    goal = torch.tensor(goal_display, dtype=dtype)
-    goal_high_pass = _high_pass(goal)
-    visible = goal > 0
-    optimiser = torch.optim.Adam([log_magnitude, phase], lr=LEARNING_RATE)
+    log_magnitude = np.log(np.maximum(magnitude, floor)).astype(dtype)
+    phase = np.angle(initial).astype(dtype)
+    adam = Adam((log_magnitude.shape, phase.shape), dtype=dtype)
     losses, clock_steps = [], 0
 
     def time_fraction() -> float:
         return 0.0 if time_budget_s is None else (time.perf_counter() - start) / time_budget_s
 
-    def step():
+    def learning_rate() -> float:
+        """lr₀·½(1 + cos πτ), τ the larger of the steps' share and the clock's (docstring)."""
         nonlocal clock_steps
         clock = (time_fraction() - CLOCK_MARGIN) / (1.0 - CLOCK_MARGIN)
         clock_steps += clock > len(losses) / iterations
         fraction = min(1.0, max(len(losses) / iterations, clock))
-        for group in optimiser.param_groups:
-            group["lr"] = LEARNING_RATE * 0.5 * (1.0 + math.cos(math.pi * fraction))
-        field = torch.polar(torch.exp(log_magnitude), phase)
-        a_scans = operator.apply_torch(field)
-        power = a_scans.real**2 + a_scans.imag**2
-        log_amplitude = 0.5 * torch.log(power + 1e-24 * power.detach().max())
-        display = 1.0 + DISPLAY_SLOPE * _MinusMax.apply(log_amplitude)
-        display = torch.where(visible, display.clamp(min=DISPLAY_GRADIENT_FLOOR), display.clamp(min=0.0))
-        error = display - goal
-        image = _mean(error.abs()) + _mean(error**2)
-        high_pass = _mean((_high_pass(display) - goal_high_pass).abs())
-        energy = _mean(field.real**2 + field.imag**2) / power.max()
-        loss = image + HIGH_PASS_WEIGHT * high_pass + energy_weight * energy
-        optimiser.zero_grad()
-        loss.backward()
-        optimiser.step()
-        losses.append(loss.item())
-        if progress is not None:
-            progress(len(losses), iterations, losses[-1])
+        return LEARNING_RATE * 0.5 * (1.0 + math.cos(math.pi * fraction))
 
-    previous_threads = torch.get_num_threads()
     trials = _thread_trials(threads, iterations)
     trial_seconds = {}
-    try:
-        torch.set_num_threads(threads or 1)
-        while len(losses) < iterations and time_fraction() < 1.0:
-            trial = len(losses)
-            if trial < len(trials):
-                torch.set_num_threads(trials[trial])
-            elif trial == len(trials) and trial_seconds:
-                torch.set_num_threads(min(trial_seconds, key=trial_seconds.get))
-            step_start = time.perf_counter()
-            step()
-            if 0 < trial < len(trials):
-                trial_seconds[trials[trial]] = trial_seconds.get(trials[trial], 0.0) \
-                    + time.perf_counter() - step_start
-        threads = torch.get_num_threads()
-    finally:
-        torch.set_num_threads(previous_threads)
+    while len(losses) < iterations and time_fraction() < 1.0:
+        trial = len(losses)
+        if trial < len(trials):
+            operator.workers = trials[trial]
+        elif trial == len(trials) and trial_seconds:
+            operator.workers = min(trial_seconds, key=trial_seconds.get)
+        step_start = time.perf_counter()
+        lr = learning_rate()
+        field = np.exp(log_magnitude) * (np.cos(phase) + 1j * np.sin(phase))
+        loss, gradient = display_loss(field, operator, goal)
+        # ∂L/∂ln|F| = Re(conj(G)·F), ∂L/∂arg F = Re(conj(G)·iF) = −Im(conj(G)·F).
+        along = np.conj(gradient) * field
+        adam.step((log_magnitude, phase), (along.real, -along.imag), (lr, lr))
+        losses.append(loss)
+        if 0 < trial < len(trials):
+            trial_seconds[trials[trial]] = trial_seconds.get(trials[trial], 0.0) + time.perf_counter() - step_start
+        if progress is not None:
+            progress(len(losses), iterations, loss)
 
-    with torch.no_grad():
-        field = torch.polar(torch.exp(log_magnitude), phase).to(torch.complex128).numpy()
+    field = np.exp(log_magnitude.astype(np.float64)) * np.exp(1j * phase.astype(np.float64))
     a_scans = operator.apply(field)
     field /= np.abs(a_scans).max()
     display = Rendering.from_a_scans(a_scans).display
-    return FieldFit(field=field, display=display, target_display=goal_display,
+    return FieldFit(field=field, display=display, target_display=goal.display.astype(np.float64),
                     losses=np.array(losses), iterations=len(losses),
-                    seconds=time.perf_counter() - start, threads=threads, clock_steps=clock_steps)
+                    seconds=time.perf_counter() - start, threads=operator.workers, clock_steps=clock_steps)
