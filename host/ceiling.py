@@ -57,45 +57,35 @@ def error_diffused(levels: np.ndarray) -> np.ndarray:
     """``levels`` with the side of each unwritable level chosen by Floyd–Steinberg error diffusion (module docstring).
 
     Only unwritable pixels change; each becomes L − 1 or L + 1 (both
-    writable: unwritable levels are at least four apart). Rows are visited
-    left to right. Within a row the error a pixel passes on is
-    p_c = e_c + 7/16·p_{c−1} − q_c, e_c what the rows above diffused onto
-    it and q_c its change of level (0 for a writable pixel): a linear
-    recurrence between unwritable pixels (:func:`scipy.signal.lfilter`),
-    decided at each unwritable one.
+    writable: unwritable levels are at least four apart), to the side of
+    the error e it carries (the nearer writable level where e = 0), and
+    passes on e − (its change): 7/16 to the right, 3/16, 5/16 and 1/16
+    below-left, below and below-right. A writable pixel passes on what it
+    received. Rows are visited left to right, top to bottom. A plain loop
+    over Python floats: 0.04 s for 256×512 pixels, where a vectorised
+    recurrence (``scipy.signal.lfilter`` between unwritable pixels) took
+    0.2 s and ``scipy.signal``'s import 0.9 s of the command's start.
     """
-    from scipy.signal import lfilter
-
     levels = np.asarray(levels, np.uint8)
-    rows, columns = levels.shape
     aimed = levels.copy()
-    carried = np.zeros(columns + 2)  # what the rows above diffused onto this row, one padding column each side
-    nearest_side = np.sign(GREY_LUT.astype(np.int16) - np.arange(256))
-    right = 7 / 16
-
-    def run(values, before):  # p_c = values_c + 7/16·p_{c−1}, p_{−1} = before
-        return lfilter([1.0], [1.0, -right], values, zi=[right * before])[0]
-
-    for row in range(rows):
-        received = carried[1:-1]
-        passed = np.empty(columns)
-        done, before = 0, 0.0
-        for column in np.flatnonzero(~WRITABLE[levels[row]]):
-            if column > done:
-                passed[done:column] = run(received[done:column], before)
-                before = passed[column - 1]
-            e = received[column] + right * before
-            level = int(levels[row, column])
-            side = int(np.sign(e)) if e != 0 else int(nearest_side[level])
-            aimed[row, column] = level + side
-            passed[column] = before = e - side
-            done = column + 1
-        if done < columns:
-            passed[done:] = run(received[done:], before)
-        carried = np.zeros(columns + 2)
-        carried[0:columns] += 3 / 16 * passed    # below-left
-        carried[1:columns + 1] += 5 / 16 * passed  # below
-        carried[2:columns + 2] += 1 / 16 * passed  # below-right
+    writable = WRITABLE.tolist()
+    nearer_side = np.sign(GREY_LUT.astype(np.int16) - np.arange(256)).tolist()
+    columns = levels.shape[1]
+    received = [0.0] * (columns + 2)  # what the rows above diffused onto this row, one padding column each side
+    for row, line in enumerate(levels.tolist()):
+        below = [0.0] * (columns + 2)
+        carried = 0.0
+        for column, level in enumerate(line):
+            e = received[column + 1] + 7 / 16 * carried
+            if not writable[level]:
+                side = (1 if e > 0 else -1) if e != 0 else nearer_side[level]
+                aimed[row, column] = level + side
+                e -= side
+            carried = e
+            below[column] += 3 / 16 * e
+            below[column + 1] += 5 / 16 * e
+            below[column + 2] += 1 / 16 * e
+        received = below
     return aimed
 
 

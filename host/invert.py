@@ -77,14 +77,15 @@ REGIMES = ("linear", "physical")
 #: at 0.99950 after 318 s.
 FIELD_BUDGET_FRACTION = 0.08
 FIELD_BUDGET_CAP_S = 45.0
-#: The linear regime's share: its stage 1 is nearly all of a run's work
-#: (4–7 s of a 6–9 s default run, stage 3 then stopping at once). With
-#: ``--time-budget 5``, 0.5, 0.6 and 0.7 gave Uniform B 0.99685, 0.99998
-#: and 0.999999 and ended 5.4, 5.2 and 5.8 s into the run (orange and skin_0
-#: at or within 1e−7 of their ceiling at 0.6 and 0.7; measured in one
-#: process with the projections then given a third of what the display fit
-#: left, before :data:`octcl.host.linear.PROJECTION_SHARE`; docs/benchmarks.md).
-LINEAR_FIELD_BUDGET_FRACTION = 0.6
+#: Seconds the linear regime keeps back from stage 1 for stage 2 and the first
+#: write of its phantom (:func:`field_budget_s`): the exact decode took
+#: 0.58–0.65 s and the write 0.2–0.3 s on two cores of an AMD EPYC
+#: (``octcl invert`` reports, ``seconds.decode`` and
+#: ``seconds.checkpoint_writes``), so that ``--time-budget B`` writes its
+#: phantom about B s after the command started (docs/benchmarks.md).
+LINEAR_WRITE_RESERVE_S = 1.0
+#: Stage 1's seconds at least, however little of the budget is left.
+MIN_FIELD_BUDGET_S = 0.2
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
 #: over them); in the linear regime those of the first display fit, the
 #: second, run only where the first does not render every aimed level, has
@@ -170,7 +171,7 @@ class InvertResult:
         The run followed a fixed schedule (``iterations`` given): no
         decision was taken from the clock.
     threads : int or None
-        torch's CPU thread count, held for the whole run; None where it was
+        CPU threads (stage 1's FFTs, stage 3's torch), held for the whole run; None where it was
         chosen by timing (a deadline run without ``threads``).
     reproduce : str
         ``octcl invert`` options that run this schedule again with no
@@ -333,6 +334,7 @@ class _CheckpointWriter:
     def __init__(self, path: Path, config: ScannerConfig, interval_s: float):
         self.path, self.config, self.interval_s = path, config, interval_s
         self.writes, self.seconds = 0, 0.0
+        self.last_write = None  # time.monotonic() when the last write ended
         self._pending, self._closed, self._error = None, False, None
         self._last_write = -math.inf
         self._condition = threading.Condition()
@@ -359,17 +361,31 @@ class _CheckpointWriter:
                         break
                     self._condition.wait(wait_s)
                 phantom, self._pending = self._pending, None
-            start = time.monotonic()
             try:
-                phantom.validate(self.config, y_limit_um=CONTRACT_Y_LIMIT_UM, source=str(self.path))
-                phantom.save(self.path)
+                self._write(phantom)
             except BaseException as exc:  # re-raised by close() in the caller's thread
                 with self._condition:
                     self._error, self._closed, self._pending = exc, True, None
                 return
-            self._last_write = time.monotonic()
-            self.seconds += self._last_write - start
-            self.writes += 1
+
+    def _write(self, phantom: Phantom) -> None:
+        start = time.monotonic()
+        phantom.validate(self.config, y_limit_um=CONTRACT_Y_LIMIT_UM, source=str(self.path))
+        phantom.save(self.path)
+        self._last_write = self.last_write = time.monotonic()
+        self.seconds += self._last_write - start
+        self.writes += 1
+
+    def write_now(self, phantom: Phantom) -> None:
+        """Write ``phantom`` in the caller's thread, before anything else is offered.
+
+        For stage 2's phantom: in the background its write took twice as
+        long (0.8–1.1 s against 0.3–0.6 s), the interpreter lock held by
+        what the caller imports next (torch, for stage 3).
+        """
+        if self.writes or self._pending is not None:
+            raise RuntimeError("write_now is for the first phantom only")
+        self._write(phantom)
 
     def close(self) -> None:
         """Write the pending phantom now, stop the thread, and raise its error if it had one."""
@@ -379,6 +395,45 @@ class _CheckpointWriter:
         self._thread.join()
         if self._error is not None:
             raise self._error
+
+
+class _LazyExactScore:
+    """:class:`octcl.host.loss.ExactScore` of a target, built at its first use.
+
+    Building it imports torch and loads the LPIPS network (about 2 s on two
+    cores); the linear regime writes its first phantom without either, and
+    only a run with several stage-1 candidates scores before stage 3.
+    """
+
+    def __init__(self, target):
+        self.target, self._score = target, None
+
+    def built(self):
+        if self._score is None:
+            from .loss import ExactScore
+
+            self._score = ExactScore(self.target)
+        return self._score
+
+    def __call__(self, levels):
+        return self.built()(levels)
+
+
+def field_budget_s(regime: str, time_budget_s: float, elapsed_s: float) -> float:
+    """Stage 1's seconds in deadline mode, ``elapsed_s`` of the budget gone (the process's start, the imports).
+
+    Physical regime: :data:`FIELD_BUDGET_FRACTION` of the budget, at most
+    :data:`FIELD_BUDGET_CAP_S`. Linear regime: all of it but what stage 2
+    and the first write need (:data:`LINEAR_WRITE_RESERVE_S`), so that the
+    phantom is written within the budget; a default run's stage 1 ends at
+    its step counts long before. At least :data:`MIN_FIELD_BUDGET_S`: a
+    budget shorter than the process's start still gets a phantom, late.
+    """
+    if regime == "linear":
+        budget = time_budget_s - elapsed_s - LINEAR_WRITE_RESERVE_S
+    else:
+        budget = min(FIELD_BUDGET_FRACTION * time_budget_s, FIELD_BUDGET_CAP_S) - elapsed_s
+    return min(max(budget, MIN_FIELD_BUDGET_S), FIELD_BUDGET_CAP_S)
 
 
 def final_reserve_s(time_budget_s: float) -> float:
@@ -406,14 +461,15 @@ class _Start:
     schedule: RefineSchedule     # stage 3's, with the regime's energy floor
     field_iterations: int        # stage 1's Adam steps (linear: the first display fit's, as asked)
     clock_steps: int             # of them, steps whose course the clock set
-    threads: int | None          # torch threads of stage 1 (None: no torch)
+    threads: int | None          # FFT threads of stage 1
     field_loss: float | None     # stage 1's last loss (physical regime)
     seconds: dict                # {"field": s, "decode": s}
     candidates: list | None = None  # the linear regime's stage-1 candidates (LinearStart.candidates)
     aim: np.ndarray | None = None   # the levels stage 1 aimed at (linear regime), for stage 3's stop
 
 
-def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell, exact_score) -> _Start:
+def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
+                    exact_score) -> _Start:
     """Stages 1–2 of the published pipeline: :func:`~octcl.host.field.fit_field`, then
     :func:`~octcl.host.decode.decode_field`."""
     from .decode import decode_field
@@ -428,29 +484,34 @@ def _physical_start(scan, config, schedule, iterations, budget_s, threads, seed,
                   {"field": fit.seconds, "decode": time.monotonic() - start})
 
 
-def _linear_start(scan, config, schedule, iterations, budget_s, threads, seed, step, tell, exact_score) -> _Start:
+def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
+                  exact_score) -> _Start:
     """Stages 1–2 in the linear regime (:mod:`octcl.host.linear`); draws nothing at random.
 
     The aim is :func:`~octcl.host.ceiling.aimed_levels` of the target. Stage 1
-    is :func:`~octcl.host.linear.linear_start`: a display fit of
-    ``iterations`` steps, projections and the hinge fit towards the aimed
-    levels (a half-length candidate only where that one falls short);
-    stage 2 :func:`~octcl.host.linear.decode_exact`. The aim goes on to
-    stage 3, which does nothing where the start renders it.
+    is :func:`~octcl.host.linear.linear_start` of ``field_schedule`` or, by
+    default, :func:`~octcl.host.field_solve.default_schedules` of
+    ``iterations`` display steps (a display fit, projections and the hinge
+    fit towards the aimed levels; a half-length candidate only where that
+    one falls short); stage 2 :func:`~octcl.host.linear.decode_exact`. The
+    aim goes on to stage 3, which does nothing where the start renders it.
     """
+    from .field_solve import default_schedules
     from .linear import ENERGY_FLOOR_PCT, decode_exact, linear_start
 
     aim = aimed_levels(target_levels(scan, config))
-    found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, adam_steps=iterations,
+    schedules = default_schedules(iterations) if field_schedule is None else (field_schedule,)
+    found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, schedules=schedules,
                          time_budget_s=budget_s, threads=threads,
                          progress=lambda taken, planned: step(taken, planned, None), aim=aim)
     tell("decode", 0, 1)
     start = time.monotonic()
     phantom = decode_exact(found.field, config)
     schedule = dataclasses.replace(schedule, min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
-    # field_iterations: the first candidate's length, from which the others follow (the reproduce options).
-    return _Start(phantom, schedule, iterations, found.clock_steps, found.threads, None,
-                  {"field": found.seconds, "decode": time.monotonic() - start}, found.candidates, aim)
+    # field_iterations: the first candidate's display steps, from which the others follow (the reproduce options).
+    return _Start(phantom, schedule, iterations if field_schedule is None else field_schedule.display_iterations,
+                  found.clock_steps, found.threads, None, {"field": found.seconds, "decode": time.monotonic() - start},
+                  found.candidates, found.aim)
 
 
 _STARTS = {"linear": _linear_start, "physical": _physical_start}
@@ -461,7 +522,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
            schedule: RefineSchedule | None = None, iterations: int | None = None,
            field_iterations: int | None = None, threads: int | None = None,
            name: str | None = None, target_score: float | None = None,
-           regime: str = REGIMES[0]) -> InvertResult:
+           regime: str = REGIMES[0], started: float | None = None,
+           field_schedule=None) -> InvertResult:
     """Invert a target B-scan into a phantom file.
 
     Parameters
@@ -477,8 +539,11 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         within the task contract: |x| ≤ Xmax/2, |y| ≤ 3 µm, 0 ≤ z ≤ Nz·Δz,
         0 ≤ E ≤ 100).
     time_budget_s : float
-        Wall-clock budget in seconds for the whole inversion, reading the
-        target and compiling the kernels included. Without ``iterations``
+        Wall-clock budget in seconds for the whole inversion, from
+        ``started``, reading the target and compiling the kernels included:
+        the phantom is written within it. Scoring the written phantom for
+        the result (and the ceiling's two scores) may end later, as stage 3
+        does nothing after the deadline. Without ``iterations``
         (deadline mode) stage 1 gets min(8 % of it, 45 s), stage 2 runs
         once and stage 3 gets the rest, so how far each stage gets depends
         on the machine's speed and load (linear regime: stage 1 gets up to
@@ -501,7 +566,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         Fixed-schedule mode: stage 1 runs ``field_iterations`` steps and
         stage 3 the first ``iterations`` Adam steps of ``schedule``
         (:meth:`RefineSchedule.truncated`), whatever the clock says, at
-        ``threads`` torch threads (default :data:`FIXED_THREADS`). With the
+        ``threads`` CPU threads (default :data:`FIXED_THREADS`). With the
         same target, seed, iterations, field_iterations, threads, octcl
         version and device the output file is the same, byte for byte
         (``docs/reproducibility.md``). A deadline run's result says how to
@@ -510,7 +575,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         Stage 1's steps (in deadline mode: at most, within its time share);
         default :data:`FIELD_ITERATIONS` of the regime.
     threads : int, optional
-        torch's CPU thread count for the whole run. In deadline mode it is
+        CPU threads for the whole run (stage 1's FFTs, stage 3's torch). In deadline mode it is
         otherwise chosen by timing steps, which follows the machine's load.
     name : str, optional
         The target's name in messages and the result; default: the path, or
@@ -520,6 +585,15 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     regime : str
         Stages 1–2 (:data:`REGIMES`, module docstring): ``linear`` (default)
         or ``physical``. In the linear regime the seed changes nothing.
+    field_schedule : str or FieldSchedule, optional
+        The linear regime's stage 1 as named steps
+        (:class:`octcl.host.field_solve.FieldSchedule`, e.g.
+        ``"display:150,project:100,hinge:200"``), one candidate, in place of
+        the default candidates of ``field_iterations`` display steps.
+    started : float, optional
+        ``time.monotonic()`` at which the budget began; default: the call.
+        ``octcl invert`` passes its process's start, so that the budget
+        counts the interpreter's start and the imports too.
 
     Returns
     -------
@@ -543,9 +617,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     """
     from octcl._scanner_op import ScannerKernels
 
-    from .loss import ExactScore
-
-    started = time.monotonic()
+    started = time.monotonic() if started is None else started
     if not (isinstance(time_budget_s, (int, float)) and time_budget_s > 0 and math.isfinite(time_budget_s)):
         raise ValueError(f"time_budget_s must be a positive number of seconds, got {time_budget_s!r}")
     for label, count in (("threads", threads), ("field_iterations", field_iterations)):
@@ -553,6 +625,14 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
             raise ValueError(f"{label} must be a whole number ≥ 1, got {count!r}")
     check_regime(regime)
     field_iterations = FIELD_ITERATIONS[regime] if field_iterations is None else field_iterations
+    if field_schedule is not None:
+        from .field_solve import FieldSchedule
+
+        if regime != "linear":
+            raise ValueError("a stage-1 schedule of named steps is the linear regime's; the physical regime's "
+                             "stage 1 is field_iterations display steps")
+        field_schedule = field_schedule if isinstance(field_schedule, FieldSchedule) \
+            else FieldSchedule.parse(field_schedule)
     schedule = default_schedule(regime) if schedule is None else schedule
     check_target_score(target_score)  # before the work starts, as the other arguments
     fixed = iterations is not None
@@ -576,8 +656,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         return time.monotonic() - started
 
     tell = _ProgressReporter(progress, started, deadline - reserve_s)
-    fraction = LINEAR_FIELD_BUDGET_FRACTION if regime == "linear" else FIELD_BUDGET_FRACTION
-    field_budget = None if fixed else min(fraction * time_budget_s, FIELD_BUDGET_CAP_S)
+    field_budget = None if fixed else field_budget_s(regime, time_budget_s, elapsed())
     # In a fixed schedule the budget is only a safety ceiling, checked at
     # every step; in deadline mode the stages fit themselves inside it.
     ceiling = _Clock(None, deadline - reserve_s if fixed else None)
@@ -589,15 +668,16 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
 
     try:
         tell("field", 0, 0)
-        exact_score = ExactScore(target)
-        first = _STARTS[regime](target_scan(target), config, schedule, field_iterations, field_budget, threads, seed,
+        exact_score = _LazyExactScore(target)
+        first = _STARTS[regime](target_scan(target), config, schedule, field_iterations, field_schedule, field_budget,
+                                threads, seed,
                                 field_step, tell, exact_score)
         seconds.update(first.seconds)
         trace.append({"time_s": elapsed(), "stage": "field", "iteration": first.field_iterations,
                       "loss": first.field_loss, "score": None})
         phantom = first.phantom
         writer = _CheckpointWriter(output_path, config, CHECKPOINT_INTERVAL_S)
-        writer.offer(phantom)
+        writer.write_now(phantom)
 
         tell("setup", 0, 1)
         start = time.monotonic()
@@ -606,7 +686,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         ceiling.check_ceiling("before stage 3")
         offset = elapsed()
         result = refine(phantom, target, first.schedule, deadline=None if fixed else deadline - reserve_s,
-                        kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score,
+                        kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score.built(),
                         on_improvement=lambda improved, components: writer.offer(improved),
                         ceiling=ceiling.ceiling if fixed else None, threads=threads,
                         target_score=target_score, aim=first.aim)
@@ -623,6 +703,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
             writer.close()  # writes the best phantom if the interval held it back
     seconds["refine"] = elapsed() - offset
     seconds["checkpoint_writes"] = writer.seconds
+    seconds["written"] = writer.last_write - started
     trace += [{**entry, "time_s": entry["time_s"] + offset} for entry in result.trace]
     seconds["total"] = elapsed()
     tell("done", result.iterations, schedule.total_iterations, done=True)
@@ -642,8 +723,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         falls=result.falls, seed=seed, field_iterations=first.field_iterations, regime=regime,
         fixed_schedule=fixed, threads=threads,
         reproduce=f"--regime {regime} --seed {seed} --iterations {result.iterations} "
-                  f"--field-iterations {first.field_iterations} "
-                  f"--threads {FIXED_THREADS if threads is None else threads}",
+                  + (f"--field-iterations {first.field_iterations} " if field_schedule is None
+                     else f"--field-schedule {field_schedule} ")
+                  + f"--threads {FIXED_THREADS if threads is None else threads}",
         reproducible=first.clock_steps == 0 and not result.stopped_by_deadline,
         ceiling=ceiling.as_dict(), exact_share=float(np.mean(rendered == levels)),
         avoidable_share=float(np.mean(WRITABLE[levels] & (rendered != levels))))

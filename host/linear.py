@@ -94,11 +94,13 @@ convergence rate O(1/k²)", Soviet Math. Dokl. 27, 1983.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 
 from .. import _reference as ref
 from .._io import GREY_LUT
@@ -106,6 +108,8 @@ from ..config import DEFAULT_CONFIG, ScannerConfig
 from ..phantom import SIGNIFICANT_DIGITS, Phantom, _round_significant
 from ..render import Rendering
 from .field import FieldOperator, cell_depths_um, target_levels, target_magnitude
+from . import lbfgs
+from .field_solve import FieldSchedule, FieldSolve, default_schedules
 
 #: Largest Σ_j (B_ij·a_j)² of any A-scan in a decoded phantom (module docstring).
 SHADOW_BOUND = 1e-12
@@ -125,11 +129,6 @@ DECODE_CORRECTIONS = 12
 START_LENGTHS = (1.0, 0.5)
 #: Projection steps after each display fit in :func:`linear_start`.
 START_PROJECTIONS = 100
-#: Under a time budget, the projections' share of what the first display fit leaves of it (the hinge fit
-#: gets the rest). With ``--time-budget 3`` (Uniform B, skin_0, orange in one process) 1/3, 1/2 and 0.7
-#: gave 0.96263/0.99999/0.99990, 0.98773/1.00000/0.99990 and 0.99437/0.99997/0.99990; with 5 s all
-#: were within 7e−6 of each other (docs/benchmarks.md).
-PROJECTION_SHARE = 0.5
 #: Stage 3's floor of E (%) for a decoded phantom (the physical regime's is 1e−20 %):
 #: at :data:`SHADOW_BOUND` the brightest rows are near 1e−11 % and the
 #: faintest 1e−26 %, 150 dB below. 1e−36 % is an amplitude of 1e−19,
@@ -211,7 +210,8 @@ class LinearFit:
 
 def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = RETRIEVAL_ITERATIONS,
                    time_budget_s: float | None = None, progress=None,
-                   initial: np.ndarray | None = None, aim: np.ndarray | None = None) -> LinearFit:
+                   initial: np.ndarray | None = None, aim: np.ndarray | None = None,
+                   workers: int = 1) -> LinearFit:
     """A field F whose linear rendering has the target's levels: accelerated projections (module docstring).
 
     Parameters
@@ -233,6 +233,8 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
         The levels whose intervals the projections aim at (and that
         ``identical`` counts); default the target's own.
         :func:`octcl.host.ceiling.aimed_levels` gives ones the scanner writes.
+    workers : int
+        FFT threads (:attr:`octcl.host.field.FieldOperator.workers`; the same bits at any count).
 
     Returns
     -------
@@ -242,7 +244,7 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
     if not (isinstance(iterations, int) and iterations >= 1):
         raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
     levels = target_levels(target, config)
-    operator = FieldOperator(config)
+    operator = FieldOperator(config, workers)
     aimed = levels if aim is None else target_levels(aim, config)
     lower, upper = level_magnitude_bounds(aimed)
     if initial is None:
@@ -284,8 +286,10 @@ def _normalised_fit(operator: FieldOperator, field: np.ndarray, aimed: np.ndarra
 # -------------------------------------------------------------- intervals
 #: L-BFGS iterations of :func:`fit_levels`.
 LEVEL_FIT_ITERATIONS = 200
-#: Corrections L-BFGS keeps (scipy's ``maxcor``).
-LEVEL_FIT_MEMORY = 20
+#: Pairs L-BFGS keeps (:func:`octcl.host.lbfgs.minimise`'s ``memory``; SciPy's default). From the same
+#: projected fields, 5, 10 and 20 pairs all put every pixel of Uniform A and B at its level, in 20 and 30
+#: iterations, taking 0.54/0.64/0.71 s and 0.43/0.50/0.60 s (two cores, AMD EPYC).
+LEVEL_FIT_MEMORY = 10
 #: :func:`fit_levels` compares the rendering's levels with the aimed ones every this many iterations.
 LEVEL_CHECK_EVERY = 10
 
@@ -303,7 +307,7 @@ def _anchored_bounds(aim: np.ndarray, magnitude: np.ndarray, margin: float) -> t
 
 def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
                iterations: int = LEVEL_FIT_ITERATIONS, margin: float = INTERVAL_MARGIN,
-               time_budget_s: float | None = None) -> LinearFit:
+               time_budget_s: float | None = None, workers: int = 1) -> LinearFit:
     """Move a field until every pixel of its rendering lies in its aimed level's interval: L-BFGS on a hinge.
 
     Minimises ½·Σ_p dist(|A_p|, [l_p, u_p])² over F, A = H·F
@@ -312,7 +316,7 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
     display's normalisation holds exactly at zero loss). With r_p = A_p −
     P_p(A_p), P_p the projection of A_p onto its annulus (the phase kept),
     the gradient with respect to (Re F, Im F) is (Re, Im) of Hᴴ·r: two FFT
-    pairs an evaluation. L-BFGS (Nocedal 1980; SciPy's L-BFGS-B) reaches
+    pairs an evaluation. L-BFGS (Nocedal 1980; :mod:`octcl.host.lbfgs`) reaches
     where the projections of :func:`retrieve_field` stall: they fix each
     pixel's magnitude in turn through a regularised inverse, which leaves
     dark pixels one level bright where their neighbours' sidelobes land
@@ -334,37 +338,31 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
         :func:`level_magnitude_bounds`' margin.
     time_budget_s : float, optional
         Stop after the first iteration that ends past this many seconds.
+    workers : int
+        FFT threads (:attr:`octcl.host.field.FieldOperator.workers`; the same bits at any count).
 
     Returns
     -------
     LinearFit
         ``identical`` counts pixels at their aimed level.
     """
-    import scipy.optimize
-
     start = time.perf_counter()
     if not (isinstance(iterations, int) and iterations >= 1):
         raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
     aim = target_levels(aim, config)
-    operator = FieldOperator(config)
+    operator = FieldOperator(config, workers)
     field = np.asarray(field, dtype=np.complex128)
     field = field / np.abs(operator.apply(field)).max()
     lower, upper = _anchored_bounds(aim, np.abs(operator.apply(field)), margin)
-    shape, size = field.shape, field.size
 
-    def as_field(vector):  # L-BFGS works on the real vector (Re F, Im F)
-        return vector[:size].reshape(shape) + 1j * vector[size:].reshape(shape)
-
-    def loss_and_gradient(vector):
-        a_scans = operator.apply(as_field(vector))
+    def loss_and_gradient(field_now):  # the gradient as ∂/∂Re F + i·∂/∂Im F: Hᴴ·r
+        a_scans = operator.apply(field_now)
         residual = a_scans - _project(a_scans, lower, upper)
-        gradient = operator.adjoint(residual)
-        return 0.5 * float(np.vdot(residual, residual).real), np.concatenate([gradient.real.ravel(),
-                                                                             gradient.imag.ravel()])
+        return 0.5 * float(np.vdot(residual, residual).real), operator.adjoint(residual)
 
     clock_steps, taken = 0, 0
 
-    def stop_when_done(intermediate_result):
+    def stop_when_done(field_now):
         """Every :data:`LEVEL_CHECK_EVERY` iterations: stop once every pixel renders at its aimed level."""
         nonlocal clock_steps, taken
         taken += 1
@@ -372,14 +370,11 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
             clock_steps = 1
             raise StopIteration
         if taken % LEVEL_CHECK_EVERY == 0:
-            if np.array_equal(Rendering.from_a_scans(operator.apply(as_field(intermediate_result.x))).levels, aim):
+            if np.array_equal(Rendering.from_a_scans(operator.apply(field_now)).levels, aim):
                 raise StopIteration
 
-    found = scipy.optimize.minimize(loss_and_gradient, np.concatenate([field.real.ravel(), field.imag.ravel()]),
-                                    jac=True, method="L-BFGS-B", callback=stop_when_done,
-                                    options={"maxiter": iterations, "maxcor": LEVEL_FIT_MEMORY, "ftol": 0.0,
-                                             "gtol": 0.0})
-    return _normalised_fit(operator, as_field(found.x), aim, taken, time.perf_counter() - start, clock_steps)
+    found, _ = lbfgs.minimise(loss_and_gradient, field, iterations, memory=LEVEL_FIT_MEMORY, callback=stop_when_done)
+    return _normalised_fit(operator, found, aim, taken, time.perf_counter() - start, clock_steps)
 
 
 # ------------------------------------------------------------------- start
@@ -390,53 +385,59 @@ class LinearStart:
     Attributes
     ----------
     field : ndarray of complex128, (Nz, Nx)
-        The best candidate's field (:class:`LinearFit`).
-    adam_steps : int
-        Display-fit steps of the best candidate.
+        The best candidate's field, scaled so that max|A(F)| = 1.
+    schedule : FieldSchedule
+        The best candidate's stage-1 schedule.
+    aim : ndarray of uint8, (Nz, Nx)
+        The levels its field was made to render (its ``aim`` steps' choice).
     candidates : list of dict
-        Per candidate tried: ``adam_steps``, ``score`` (the exact score of
-        the field's own 8-bit rendering, where there were several
+        Per candidate tried: ``schedule`` (its text), ``score`` (the exact
+        score of the field's own 8-bit rendering, where there were several
         candidates to choose from; else None), ``identical`` (share of
-        pixels at the aimed level), ``seconds``.
+        pixels at the aimed level), ``seconds`` and ``steps`` (what each
+        step did, :class:`octcl.host.field_solve.StepRecord`).
     seconds : float
     clock_steps : int
-        Decisions the clock took: a fit or projection cut by the budget, or
-        a planned candidate left out because it would not fit.
+        Decisions the clock took: a step cut by the budget, or a planned
+        candidate left out because it would not fit.
     threads : int
-        torch threads of the display fits.
+        CPU threads of the FFTs (timed by the first display fit unless given).
     """
 
     field: np.ndarray
-    adam_steps: int
+    schedule: FieldSchedule
+    aim: np.ndarray
     candidates: list
     seconds: float
     clock_steps: int
     threads: int
 
 
-def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_steps: int = 300,
-                 lengths: tuple = START_LENGTHS, projections: int = START_PROJECTIONS,
+def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedules: tuple | None = None,
                  time_budget_s: float | None = None, threads: int | None = None, progress=None,
-                 aim: np.ndarray | None = None, level_iterations: int = LEVEL_FIT_ITERATIONS) -> LinearStart:
-    """Stage 1 of the linear regime: display fits of several lengths, each then projected; the best by score.
+                 aim: np.ndarray | None = None) -> LinearStart:
+    """Stage 1 of the linear regime: candidate schedules of named steps, the best field by score.
 
-    Each candidate is :func:`octcl.host.field.fit_field` (Adam on the
-    display, the physical regime's stage 1) for round(L·``adam_steps``)
-    steps, L in ``lengths``, then ``projections`` steps of
-    :func:`retrieve_field` from its field; the candidate whose field renders
-    with the highest ``score`` is kept. The display fit puts the dark
-    pixels near their levels (its loss is on the logarithmic display) and
-    keeps the field close to its rendering in norm (‖F‖/‖A(F)‖ 1.1–2.3
-    against 3.6–6.6 from the regularised inverse); the projections then put
-    most pixels exactly at their level. Which length ends best varies from
-    scan to scan (the problem is not convex). Measured on the development
-    set (``python scripts/bench_linear.py --skin 3``, docs/benchmarks.md,
-    the field's own score): of 150, 300 and 600 steps, 300 was best on 4 of
-    the 7 scans, 150 on 2 (by 2.3e−4 on Uniform B and 7e−5 on skin_2) and
-    600 on orange (by 8e−6), hence :data:`START_LENGTHS` 300 and 150; 600
-    projections alone, from the regularised inverse, scored 0.99913–0.99987,
-    2.5e−5 to 7.4e−4 below the best of the three on every scan. 100
-    projections after a display fit ended within 2e−6 of 600.
+    Each candidate is a :class:`~octcl.host.field_solve.FieldSchedule` run
+    by a :class:`~octcl.host.field_solve.FieldSolve`; by default
+    :func:`~octcl.host.field_solve.default_schedules` of 300 display steps:
+    ``display:300,project:100,hinge:200``, then the same with 150. Once a
+    candidate renders every pixel at its aimed level the others are left
+    out; of several, the one whose field renders with the highest
+    ``score`` is kept. The display fit puts the dark pixels near their
+    levels (its loss is on the logarithmic display) and keeps the field
+    close to its rendering in norm (‖F‖/‖A(F)‖ 1.1–2.3 against 3.6–6.6 from
+    the regularised inverse); the projections then put most pixels exactly
+    at their level, and the hinge fit the rest. Which display length ends
+    best varies from scan to scan (the problem is not convex). Measured on
+    the development set without the hinge fit (``python
+    scripts/bench_linear.py --skin 3``, docs/benchmarks.md, the field's own
+    score): of 150, 300 and 600 display steps, 300 was best on 4 of the 7
+    scans, 150 on 2 (by 2.3e−4 on Uniform B and 7e−5 on skin_2) and 600 on
+    orange (by 8e−6), hence :data:`START_LENGTHS`; 600 projections alone,
+    from the regularised inverse, scored 0.99913–0.99987, 2.5e−5 to 7.4e−4
+    below the best of the three on every scan. 100 projections after a
+    display fit ended within 2e−6 of 600.
 
     Parameters
     ----------
@@ -446,85 +447,64 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, adam_ste
         ``score(levels) -> float``: the exact score of 8-bit levels against the
         target (the mean of :class:`octcl.host.loss.ExactScore`'s components).
     config : ScannerConfig
-    adam_steps : int
-        The first candidate's display-fit steps; the others are multiples.
-    lengths : tuple of float
-        Multiples of ``adam_steps``, tried in order.
-    projections : int
-        Projection steps after each fit.
+    schedules : tuple of FieldSchedule, optional
+        The candidates, tried in order; default ``default_schedules(300)``.
     time_budget_s : float, optional
-        The first candidate gets all of it (half for the fit, half of the
-        rest for the projections, the rest for the hinge fit); a later one
-        runs only if its steps, at the first candidate's measured pace, end
-        within it.
+        The first candidate gets all of it (its steps their shares); a
+        later one runs only if its iterations, at the first candidate's
+        measured pace, end within it.
     threads : int, optional
-        torch threads of the fits (:func:`octcl.host.field.fit_field`).
+        FFT threads (:func:`octcl.host.field.fit_field`; by default timed there).
     progress : callable, optional
-        ``progress(step, steps)`` over all candidates' steps.
+        ``progress(step, steps)`` over all candidates' iterations.
     aim : ndarray of uint8, optional
-        The levels the projections aim at (:func:`retrieve_field`); the
+        The levels the steps aim at; default the target's own. The
         candidates are still judged by ``score`` against the target.
 
     Returns
     -------
     LinearStart
     """
-    from .field import fit_field
-
     start = time.perf_counter()
-    if not (isinstance(adam_steps, int) and adam_steps >= 1):
-        raise ValueError(f"adam_steps must be a whole number ≥ 1, got {adam_steps!r}")
-    plan = [max(1, round(length * adam_steps)) for length in lengths]
-    total = sum(plan) + projections * len(plan)
-    operator = FieldOperator(config)
-    candidates, done, clock_steps, pace, used_threads = [], 0, 0, None, threads
+    schedules = default_schedules(300) if schedules is None else tuple(schedules)
+    if not schedules or not all(isinstance(schedule, FieldSchedule) for schedule in schedules):
+        raise ValueError("schedules must be one or more FieldSchedule")
+    levels = target_levels(target, config)
+    aim = levels if aim is None else target_levels(aim, config)
+    total = sum(schedule.iterations for schedule in schedules)
+    candidates, solves, done, clock_steps, pace = [], [], 0, 0, None
 
     def elapsed():
         return time.perf_counter() - start
 
-    fields = []
-    for steps in plan:
-        if candidates and candidates[0]["identical"] == 1.0:
+    for schedule in schedules:
+        if solves and solves[0].identical == 1.0:
             break  # every pixel at its aimed level: another candidate would render the same levels
-        if candidates and time_budget_s is not None and elapsed() + pace * (steps + projections) > time_budget_s:
+        if solves and time_budget_s is not None and elapsed() + pace * schedule.iterations > time_budget_s:
             clock_steps += 1
             continue
         began = time.perf_counter()
-        # The first candidate's budget: half for the fit, PROJECTION_SHARE of what is left for the projections,
-        # the rest for the hinge fit; a later candidate runs only where its steps fit (above).
-        first = time_budget_s is not None and not candidates
-
-        def left(share=1.0):
-            return max(0.0, share * (time_budget_s - elapsed())) if first else None
-
-        fit = fit_field(target, config, iterations=steps, time_budget_s=left(0.5), threads=threads,
-                        progress=lambda taken, planned, loss: progress and progress(done + taken, total))
-        used_threads = fit.threads
-        retrieved = retrieve_field(target, config, iterations=projections, time_budget_s=left(PROJECTION_SHARE),
-                                   initial=fit.field, aim=aim,
-                                   progress=lambda taken, planned: progress and progress(done + steps + taken, total))
-        clock_steps += fit.clock_steps + retrieved.clock_steps
-        if level_iterations:
-            fitted = fit_levels(retrieved.field, target_levels(target, config) if aim is None else aim, config,
-                                iterations=level_iterations, time_budget_s=left())
-            clock_steps += fitted.clock_steps
-            # Never below its start: a hinge fit cut short by the clock can leave fewer pixels at their level.
-            if fitted.identical >= retrieved.identical:
-                retrieved = fitted
-        done += steps + projections
-        candidates.append({"adam_steps": fit.iterations, "score": None, "identical": retrieved.identical,
-                           "seconds": time.perf_counter() - began})
-        fields.append(retrieved.field)
+        solve = FieldSolve(levels, aim, config, threads if not solves else solves[0].threads, score=score)
+        solve.run(schedule, time_budget_s=None if solves or time_budget_s is None else time_budget_s - elapsed(),
+                  progress=lambda step, steps, offset=done: progress and progress(offset + step, total))
+        clock_steps += solve.clock_steps
+        done += schedule.iterations
+        candidates.append({"schedule": str(schedule), "score": None, "identical": solve.identical,
+                           "seconds": time.perf_counter() - began,
+                           "steps": [dataclasses.asdict(record) for record in solve.history]})
+        solves.append(solve)
         if pace is None:
-            pace = candidates[0]["seconds"] / (fit.iterations + retrieved.iterations)
-    # Scored only where there is a choice to make: an exact score costs 0.5–1 s, and stage 3 scores the
+            pace = candidates[0]["seconds"] / max(1, sum(record.iterations for record in solve.history))
+    # Scored only where there is a choice to make: an exact score costs 0.3–1 s, and stage 3 scores the
     # start anyway.
     if len(candidates) > 1:
-        for candidate, field in zip(candidates, fields):
-            candidate["score"] = float(score(Rendering.from_a_scans(operator.apply(field)).levels))
+        operator = FieldOperator(config)
+        for candidate, solve in zip(candidates, solves):
+            candidate["score"] = float(score(Rendering.from_a_scans(operator.apply(solve.field)).levels))
     chosen = max(range(len(candidates)), key=lambda index: candidates[index]["score"] or 0.0)
-    return LinearStart(field=fields[chosen], adam_steps=candidates[chosen]["adam_steps"], candidates=candidates,
-                       seconds=elapsed(), clock_steps=clock_steps, threads=used_threads)
+    return LinearStart(field=solves[chosen].field, schedule=schedules[chosen], aim=solves[chosen].aim,
+                       candidates=candidates, seconds=elapsed(), clock_steps=clock_steps,
+                       threads=solves[0].threads or 1)
 
 
 # ------------------------------------------------------------------ decode
@@ -569,24 +549,23 @@ def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
     goes to the two whose angles enclose it. Returns (D,) + values.shape.
     """
     carriers = np.asarray(carriers)
-    per_value = carriers.ndim > 1
-    if per_value:
-        carriers = np.broadcast_to(carriers, (carriers.shape[0],) + np.shape(values))
-    angles = np.angle(carriers)
+    if carriers.ndim == 1:
+        carriers = carriers.reshape(carriers.shape + (1,) * np.ndim(values))
+    angles = np.angle(carriers)  # (D, ...) broadcasting against values, never expanded to their size
     order = np.argsort(angles.reshape(carriers.shape[0], -1)[:, 0])
+    value_angles = np.angle(values)
     weights = np.zeros((carriers.shape[0],) + np.shape(values))
     turn = 2 * np.pi
     for position, first in enumerate(order):
         second = order[(position + 1) % order.size]
         sector = (angles[second] - angles[first]) % turn
-        inside = (np.angle(values) - angles[first]) % turn < sector
-        c1, c2 = (carriers[first][inside], carriers[second][inside]) if per_value \
-            else (carriers[first], carriers[second])
-        value = values[inside]
-        # value = p·c1 + q·c2 with real p, q: Im(conj(c1)·c2) is the determinant.
+        inside = (value_angles - angles[first]) % turn < sector
+        c1, c2 = carriers[first], carriers[second]
+        # value = p·c1 + q·c2 with real p, q: Im(conj(c1)·c2) is the determinant. Computed for every value
+        # and kept where it lies in this sector: cheaper than gathering the sector's values.
         determinant = (np.conj(c1) * c2).imag
-        weights[first][inside] = (np.conj(value) * c2).imag / determinant
-        weights[second][inside] = (np.conj(c1) * value).imag / determinant
+        weights[first] = np.where(inside, (np.conj(values) * c2).imag / determinant, weights[first])
+        weights[second] = np.where(inside, (np.conj(c1) * values).imag / determinant, weights[second])
     return np.maximum(weights, 0.0)  # rounding can leave −1e−17 on a sector's edge
 
 
@@ -620,10 +599,10 @@ def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) 
         for m in range(_SHIFT_TERMS):
             if m:
                 term = term * rounding / m
-            series += (-2j * (k - k0))[:, None] ** m * np.fft.fft(term, axis=0)
+            series += (-2j * (k - k0))[:, None] ** m * scipy.fft.fft(term, axis=0)
         spectrum += np.exp(-2j * (k - k0) * nominal[d])[:, None] * series
         spectrum += np.exp(-2j * (k - k0) * offsets[d, 0])[:, None] * first_row[None, :]
-    return np.fft.ifft(spectrum, axis=0)
+    return scipy.fft.ifft(spectrum, axis=0)
 
 
 def _cell_weights(field: np.ndarray, config: ScannerConfig) -> np.ndarray:
@@ -686,6 +665,6 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
 
 
 __all__ = ["DECODE_CORRECTIONS", "ENERGY_FLOOR_PCT", "INTERVAL_MARGIN", "LinearFit", "LinearStart",
-           "START_LENGTHS", "START_PROJECTIONS", "linear_start", "MOMENTUM", "RETRIEVAL_ITERATIONS",
+           "LEVEL_FIT_ITERATIONS", "START_LENGTHS", "START_PROJECTIONS", "linear_start", "MOMENTUM", "RETRIEVAL_ITERATIONS",
            "SHADOW_BOUND", "STEP", "decode_exact", "level_magnitude_bounds", "rendered_cells",
            "retrieve_field", "row_depths_um", "row_offsets_um", "split_on_carriers", "fit_levels"]

@@ -66,12 +66,11 @@ from octcl._lpips import lpips_network
 from octcl._msssim import msssim_torch
 from octcl.maps import map_levels, maps_torch
 
+from .schedule import LPIPS_TERMS, LossWeights
 from .target import target_scan, target_struct_for_metrics
 
 #: ∂P/∂D of the straight-through quantiser: P = floor(256·D)/255 on average.
 QUANTISER_SLOPE = 256.0 / 255.0
-#: Maps each LPIPS term compares (the key of :class:`LossWeights` → map name).
-_LPIPS_TERMS = {"struct_lpips": "Struct", "oac_lpips": "OAC", "sc_lpips": "SC", "rsc_lpips": "RSC"}
 _MSSSIM_TERMS = {"struct_msssim": "Struct", "oac_msssim": "OAC"}
 
 
@@ -84,42 +83,6 @@ def _onednn_off():
         yield
     finally:
         torch.backends.mkldnn.enabled = previous
-
-
-@dataclass(frozen=True)
-class LossWeights:
-    """Weights of the loss terms (see the module docstring); 0 skips a term.
-
-    The defaults are the published method's weights. LPIPS is most of the
-    loss's time (one 256×512 image through AlexNet and back per term):
-    0.69–0.89 s a refinement step for the full loss on two cores, 0.32–0.36 s
-    with OAC's LPIPS only and 0.16–0.20 s without LPIPS (before AlexNet ran
-    with oneDNN, :class:`DisplayLoss`); the cheaper losses
-    reached lower scores per second on three of four scans
-    (``scripts/bench_refine.py``, docs/benchmarks.md).
-    """
-
-    pixel: float = 1.0
-    sc_l1: float = 0.1
-    oac_l1: float = 1.0
-    oac_lpips: float = 0.4
-    oac_msssim: float = 1.0
-    struct_msssim: float = 1.2
-    struct_lpips: float = 0.01
-    sc_lpips: float = 0.05
-    rsc_lpips: float = 0.05
-
-    def __post_init__(self):
-        for field in dataclasses.fields(self):
-            value = getattr(self, field.name)
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"loss weight {field.name} must be finite and ≥ 0, got {value!r}")
-        if not any(dataclasses.astuple(self)):
-            raise ValueError("at least one loss weight must be positive")
-
-    def without_lpips(self) -> "LossWeights":
-        """The same weights with every LPIPS term off (the cheap loss)."""
-        return dataclasses.replace(self, **{name: 0.0 for name in _LPIPS_TERMS})
 
 
 @dataclass
@@ -181,7 +144,7 @@ class DisplayLoss:
             # thread count (without oneDNN, layers 2–5 differ between 1 and 2 threads), so the
             # loss does not depend on the thread count at which it was built.
             self._target_taps = {
-                name: self._taps(self.target[name]) for name in _LPIPS_TERMS.values()}
+                name: self._taps(self.target[name]) for name in LPIPS_TERMS.values()}
 
     def _taps(self, image: torch.Tensor) -> list[torch.Tensor]:
         """LPIPS's unit-normalised AlexNet activations of a grey (H, W) image in [0, 1]."""
@@ -194,7 +157,7 @@ class DisplayLoss:
     def _wanted(self, lpips: bool) -> set[str]:
         """The terms with a positive weight (without the LPIPS ones unless ``lpips``)."""
         return {name for name, weight in dataclasses.asdict(self.weights).items()
-                if weight > 0 and (lpips or name not in _LPIPS_TERMS)}
+                if weight > 0 and (lpips or name not in LPIPS_TERMS)}
 
     @staticmethod
     def _images(scan: torch.Tensor, wanted: set[str]) -> dict[str, torch.Tensor]:
@@ -221,7 +184,7 @@ class DisplayLoss:
 
     def _lpips_terms(self, images: dict, wanted: set[str]) -> dict[str, torch.Tensor]:
         return {name: self._lpips(map_name, images[map_name])
-                for name, map_name in _LPIPS_TERMS.items() if name in wanted}
+                for name, map_name in LPIPS_TERMS.items() if name in wanted}
 
     def terms(self, scan: torch.Tensor, lpips: bool = True) -> dict[str, torch.Tensor]:
         """The unweighted terms with a positive weight, differentiable in the scan P.
@@ -290,10 +253,10 @@ class DisplayLoss:
             terms = self._pixel_terms(images, wanted)
             loss = weighted_sum(terms)
         value = loss.item()
-        if wanted & set(_LPIPS_TERMS):  # AlexNet with oneDNN on the maps' copies (Notes)
-            # In _LPIPS_TERMS's order, so that the sums below add up the same way in every process.
-            copies = {_LPIPS_TERMS[name]: images[_LPIPS_TERMS[name]].detach().requires_grad_(True)
-                      for name in _LPIPS_TERMS if name in wanted}
+        if wanted & set(LPIPS_TERMS):  # AlexNet with oneDNN on the maps' copies (Notes)
+            # In LPIPS_TERMS's order, so that the sums below add up the same way in every process.
+            copies = {LPIPS_TERMS[name]: images[LPIPS_TERMS[name]].detach().requires_grad_(True)
+                      for name in LPIPS_TERMS if name in wanted}
             lpips_terms = self._lpips_terms(copies, wanted)
             lpips_loss = weighted_sum(lpips_terms)
             grads = dict(zip(copies, torch.autograd.grad(lpips_loss, list(copies.values()))))

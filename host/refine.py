@@ -112,234 +112,25 @@ schedule take some 310 s idle: 0.99900 → 0.99964 on Scan_Exp2_Layers_A and
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import SIGNIFICANT_DIGITS, Phantom, _round_significant
 from octcl.render import Rendering, display_vjp
 
+from .adam import Adam
 from .field import _available_cores
-from .loss import DisplayLoss, ExactScore, LossWeights
+from .schedule import FALL_LR_FACTOR, MAX_ENERGY_PCT, STOP_RULES, Phase, RefineSchedule
+
+if TYPE_CHECKING:
+    from .loss import DisplayLoss, ExactScore
 from .target import target_scan
 
-#: Largest energy of the task contract, in % (u ≤ ln 100).
-MAX_ENERGY_PCT = 100.0
-#: The default :attr:`RefineSchedule.min_gain`: the smallest gain of exact score that counts as progress.
-MIN_GAIN = 1e-5
-#: Stopping rules by name (:meth:`RefineSchedule.with_stop_rule`), the default first.
-STOP_RULES = ("restarts", "stall", "none")
-#: What a fall of the main run (:attr:`RefineSchedule.max_falls`) multiplies its learning rates by.
-FALL_LR_FACTOR = 0.5
-
-
-@dataclass(frozen=True)
-class Phase:
-    """A run of Adam iterations at fixed learning rates.
-
-    Attributes
-    ----------
-    iterations : int
-        Adam steps.
-    lr_z_um : float
-        Step length of the depths, in µm.
-    lr_u : float
-        Step length of u = ln E (dimensionless).
-    lpips : bool
-        Include the loss's LPIPS terms (else :meth:`LossWeights.without_lpips`,
-        about a third of the loss's cost).
-    """
-
-    iterations: int
-    lr_z_um: float
-    lr_u: float
-    lpips: bool = True
-
-    def __post_init__(self):
-        if self.iterations < 0:
-            raise ValueError(f"iterations must be ≥ 0, got {self.iterations}")
-        if not (self.lr_z_um >= 0 and self.lr_u >= 0):
-            raise ValueError(f"learning rates must be ≥ 0, got {self.lr_z_um}, {self.lr_u}")
-
-
-@dataclass(frozen=True)
-class RefineSchedule:
-    """What stage 3 runs, in order, until its iterations or the deadline run out.
-
-    Attributes
-    ----------
-    phases : tuple of Phase
-        The main run: one Adam optimiser whose learning rates and loss change
-        from phase to phase (its moments carry over). The default, 20
-        iterations at (lr_z_um, lr_u) = (0.002, 0.05), 140 at (0.002, 0.02),
-        120 at (0.0005, 0.005), then two restarts of 60, follows the
-        measurements in the module docstring; on two CPU cores a 600 s
-        inversion reaches 300–600 iterations depending on the load.
-    restarts : tuple of Phase
-        Each restarts Adam (zero moments) from the best phantom so far and
-        keeps the best of that parent and its checkpoints at half its
-        iterations and at its end.
-    score_every : int
-        Iterations between exact evaluations in the main run (its last
-        iterate is always evaluated).
-    beta1, beta2, epsilon : float
-        Adam's moment decay rates and the guard of its denominator.
-        Gradients of dim scatterers reach 1e−14 (the loss is a mean over
-        131,072 pixels and ∂|A|/∂u ∝ a_j), so ε is far below them, leaving
-        every scatterer its full step. On orange.png the choice mattered
-        little: 0.99847 with ε = 1e−8 and 0.99838 with 1e−20 after 40
-        iterations at lr 0.01 / 0.02 (one run each).
-    min_log_energy : float
-        Floor of u = ln E, so E never reaches 0 (u = −∞) and a dimmed
-        scatterer keeps a gradient (∂/∂u ∝ a_j). Stage 2 scales its phantom
-        so that shadowing is negligible, which puts the median E near 1e−4 %
-        and the dimmest decoded scatterers near 1e−11 %; the default 1e−20 %
-        (a = 1e−11, 100 dB below them and far above float32's smallest
-        normal number) changes no rendering.
-    loss_weights : LossWeights
-        Weights of the loss terms (the LPIPS ones apply in ``lpips`` phases).
-    max_iterations : int, optional
-        Stop after this many Adam steps, restarts included (:meth:`truncated`).
-    min_gain : float or None
-        Adaptive stopping: refinement ends once a restart has gained less
-        than ``min_gain`` over its parent (the best score before it), and
-        while each gains, the last restart is repeated until the schedule's
-        iterations are spent. None: every restart runs, once
-        (:meth:`fixed_length`, the schedule before adaptive stopping).
-    patience : int or None
-        With ``min_gain``, the main run also ends (skipping the rest of its
-        phases; the restarts begin from the best phantom) once the best
-        exact score has gained less than ``min_gain`` over its last
-        ``patience`` checkpoints. Off by default: on the development set it
-        cost up to 2.3e−4 of score (module docstring).
-    lpips_every : int
-        In ``lpips`` phases, the LPIPS terms' gradient is computed on every
-        ``lpips_every``-th step of a run (and its first, and the first after
-        a phase without LPIPS) and reused on the steps between
-        (:class:`octcl.host.loss.DisplayLoss`, ``lpips="keep"``/``"reuse"``);
-        the other terms are computed on every step. 1: LPIPS on every step,
-        the default: with 2 or 3, the score fell on every reusing step and
-        ended lower on every scan of the development set, early and late in
-        the schedule, for 0.2–0.6 s less a step (``scripts/bench_refine.py``,
-        docs/benchmarks.md).
-    max_falls : int
-        The main run goes back when it falls: a checkpoint scoring below
-        max(s₀, s_best − ``fall_tolerance``), s₀ the score the run started
-        from and s_best the best so far, puts the best phantom back as the
-        iterate, with fresh Adam moments and the learning rates of the rest
-        of the main run times :data:`FALL_LR_FACTOR`; at most ``max_falls``
-        times, then the run goes on from where it is (0: never). Restarts
-        already begin from the best phantom and keep it, so only the main
-        run is guarded. On a run that gains, nothing changes: its
-        checkpoints stay above s₀ and within the tolerance of its best.
-    fall_tolerance : float
-        How far below the best a checkpoint may score before the main run
-        has fallen. Along the main run the iterate's exact score moves by
-        ±1e−4 to ±4e−4 between checkpoints while its best keeps rising (module
-        docstring), so the default 1e−3 is 2.5 times the largest such move.
-
-    These decisions follow the exact scores alone, never the clock, so
-    fixed-schedule runs stay reproducible.
-    """
-
-    phases: tuple[Phase, ...] = (Phase(20, 0.002, 0.05), Phase(140, 0.002, 0.02),
-                                 Phase(120, 0.0005, 0.005))
-    restarts: tuple[Phase, ...] = (Phase(60, 0.0005, 0.005), Phase(60, 0.00025, 0.0025))
-    score_every: int = 20
-    beta1: float = 0.9
-    beta2: float = 0.999
-    epsilon: float = 1e-20
-    min_log_energy: float = math.log(1e-20)
-    loss_weights: LossWeights = field(default_factory=LossWeights)
-    max_iterations: int | None = None
-    patience: int | None = None
-    min_gain: float | None = MIN_GAIN
-    lpips_every: int = 1
-    max_falls: int = 2
-    fall_tolerance: float = 1e-3
-
-    def __post_init__(self):
-        if self.score_every < 1:
-            raise ValueError(f"score_every must be ≥ 1, got {self.score_every}")
-        if not (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.epsilon > 0):
-            raise ValueError("need 0 ≤ beta1, beta2 < 1 and epsilon > 0")
-        if not self.min_log_energy < math.log(MAX_ENERGY_PCT):
-            raise ValueError(f"min_log_energy must be below ln 100, got {self.min_log_energy}")
-        if self.max_iterations is not None and self.max_iterations < 0:
-            raise ValueError(f"max_iterations must be ≥ 0, got {self.max_iterations}")
-        if self.patience is not None and not (isinstance(self.patience, int) and self.patience >= 1):
-            raise ValueError(f"patience must be a whole number ≥ 1 or None, got {self.patience!r}")
-        if self.min_gain is not None and not self.min_gain >= 0:
-            raise ValueError(f"min_gain must be ≥ 0 or None, got {self.min_gain}")
-        if self.patience is not None and self.min_gain is None:
-            raise ValueError("patience needs a min_gain")
-        if not (isinstance(self.lpips_every, int) and self.lpips_every >= 1):
-            raise ValueError(f"lpips_every must be a whole number ≥ 1, got {self.lpips_every!r}")
-        if not (isinstance(self.max_falls, int) and self.max_falls >= 0):
-            raise ValueError(f"max_falls must be a whole number ≥ 0, got {self.max_falls!r}")
-        if not self.fall_tolerance >= 0:
-            raise ValueError(f"fall_tolerance must be ≥ 0, got {self.fall_tolerance}")
-
-    def fixed_length(self) -> "RefineSchedule":
-        """This schedule without adaptive stopping: every phase and restart runs its whole length."""
-        return dataclasses.replace(self, patience=None, min_gain=None)
-
-    def with_stop_rule(self, rule: str) -> "RefineSchedule":
-        """This schedule with one of the stopping rules of :data:`STOP_RULES` (``octcl invert --stop-rule``).
-
-        ``restarts``: ``min_gain`` 1e−5, no ``patience`` (the default);
-        ``stall``: the same and ``patience`` 2 (about half the time on the
-        development set, not yet shown to keep every scan's score: module
-        docstring); ``none``: :meth:`fixed_length`.
-        """
-        if rule not in STOP_RULES:
-            raise ValueError(f"stop rule must be one of {', '.join(STOP_RULES)}, got {rule!r}")
-        if rule == "none":
-            return self.fixed_length()
-        return dataclasses.replace(self, min_gain=MIN_GAIN, patience=2 if rule == "stall" else None)
-
-    @classmethod
-    def published(cls) -> "RefineSchedule":
-        """The seed paper's schedule: 800 + 200 iterations, four 100-iteration restarts.
-
-        The restarts' learning rates 0.002, 0.002, 0.001, 0.0005 are taken
-        as depth steps in µm, with 10× that for u (the ratio of the best
-        rates measured here, module docstring); the main run's rates are not
-        published and are the default's. At about 1 s an iteration on two
-        CPU cores this takes some 25 minutes: it is for faster machines.
-        """
-        return cls(phases=(Phase(800, 0.002, 0.02), Phase(200, 0.0005, 0.005)),
-                   restarts=tuple(Phase(100, lr, 10 * lr) for lr in (0.002, 0.002, 0.001, 0.0005)),
-                   score_every=50, min_gain=None)
-
-    @property
-    def total_iterations(self) -> int:
-        """Adam steps the schedule runs: its phases and restarts, or ``max_iterations`` if fewer."""
-        planned = sum(p.iterations for p in self.phases + self.restarts)
-        return planned if self.max_iterations is None else min(planned, self.max_iterations)
-
-    def truncated(self, iterations: int) -> "RefineSchedule":
-        """The schedule stopped after its first ``iterations`` Adam steps (:attr:`max_iterations`).
-
-        It runs what a deadline run that stopped after that many steps ran:
-        phases and then restarts in order, with their exact evaluations on
-        the same steps as in the whole schedule, plus one of the last iterate.
-
-        Raises
-        ------
-        ValueError
-            ``iterations`` negative or beyond the schedule's Adam steps.
-        """
-        planned = sum(p.iterations for p in self.phases + self.restarts)
-        if not (isinstance(iterations, int) and 0 <= iterations <= planned):
-            raise ValueError(f"iterations must be a whole number in [0, {planned}] (the schedule's Adam "
-                             f"steps), got {iterations!r}")
-        return dataclasses.replace(self, max_iterations=iterations)
 
 
 @dataclass
@@ -453,31 +244,6 @@ def saved_precision(values: np.ndarray) -> np.ndarray:
     return _round_significant(values, SIGNIFICANT_DIGITS)
 
 
-class _Adam:
-    """Adam on a list of parameter arrays, in place, with per-array learning rates.
-
-    m ← β1·m + (1 − β1)·g,  v ← β2·v + (1 − β2)·g²,
-    θ ← θ − lr·(m / (1 − β1^t)) / (sqrt(v / (1 − β2^t)) + ε).
-    """
-
-    def __init__(self, shapes, beta1: float, beta2: float, epsilon: float):
-        self.beta1, self.beta2, self.epsilon = beta1, beta2, epsilon
-        self.first = [np.zeros(shape) for shape in shapes]
-        self.second = [np.zeros(shape) for shape in shapes]
-        self.steps = 0
-
-    def step(self, params, grads, lrs) -> None:
-        self.steps += 1
-        first_correction = 1 - self.beta1**self.steps
-        second_correction = 1 - self.beta2**self.steps
-        for param, grad, lr, m, v in zip(params, grads, lrs, self.first, self.second):
-            m *= self.beta1
-            m += (1 - self.beta1) * grad
-            v *= self.beta2
-            v += (1 - self.beta2) * grad**2
-            param -= lr * (m / first_correction) / (np.sqrt(v / second_correction) + self.epsilon)
-
-
 class TimeBudgetExceeded(RuntimeError):
     """A run with a fixed schedule reached its time ceiling before the schedule's end."""
 
@@ -517,6 +283,8 @@ class _FixedThreads:
         self.threads = threads
 
     def before_call(self) -> None:
+        import torch
+
         torch.set_num_threads(self.threads)
 
     def after_call(self, kind, seconds: float) -> None:
@@ -549,6 +317,8 @@ class _ThreadChooser:
         self._trial = False
 
     def before_call(self) -> None:
+        import torch
+
         self._trial = bool(self._plan) or self._retry_at == self._calls
         current = self._plan[0] if self._plan else (self.cores if self._trial else self.threads)
         torch.set_num_threads(current)
@@ -583,7 +353,7 @@ class _Refiner:
         self.cpu_seconds = dict.fromkeys(self.timings, 0.0)
         self.threads = _ThreadChooser(_available_cores()) if threads is None else _FixedThreads(threads)
 
-    def loss(self, lpips: bool) -> DisplayLoss:
+    def loss(self, lpips: bool) -> "DisplayLoss":
         """The loss with or without its LPIPS terms, built at its first use.
 
         Building one costs 0.4–0.9 s (the LPIPS network and the target's
@@ -591,6 +361,8 @@ class _Refiner:
         first exact evaluation (``octcl invert --time-budget 10``) builds none.
         """
         if lpips not in self._losses:
+            from .loss import DisplayLoss
+
             weights = self.schedule.loss_weights
             self._losses[lpips] = DisplayLoss(self.scan, weights if lpips else weights.without_lpips())
         return self._losses[lpips]
@@ -630,7 +402,7 @@ class _Refiner:
         self.clock.record("score", time.perf_counter() - start)
         return components
 
-    def step(self, adam: _Adam, params, grads, lrs) -> None:
+    def step(self, adam: Adam, params, grads, lrs) -> None:
         """An Adam step on (z, u), projected back onto the constraints."""
         self._timed("adam", adam.step, params, grads, lrs)
         self.constrain(*params)
@@ -657,7 +429,7 @@ class _Refiner:
 
 def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = RefineSchedule(),
            deadline: float | None = None, kernels=None, config: ScannerConfig = DEFAULT_CONFIG,
-           progress=None, on_improvement=None, exact_score: ExactScore | None = None,
+           progress=None, on_improvement=None, exact_score: "ExactScore | None" = None,
            ceiling: float | None = None, threads: int | None = None,
            target_score: float | None = None, aim: np.ndarray | None = None) -> RefineResult:
     """Refine depths and energies of ``phantom`` towards the target scan.
@@ -725,6 +497,10 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     ValueError
         ``target_score`` outside (0, 1].
     """
+    import torch  # here, not at the top: choosing a schedule (invert, the CLI) must not import it
+
+    from .loss import ExactScore
+
     started = time.monotonic()
     clock = _Clock(deadline, ceiling)
     check_target_score(target_score)
@@ -782,7 +558,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         phantom when it falls (:attr:`RefineSchedule.max_falls`).
         """
         nonlocal stop_reason, iterations
-        adam = _Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
+        adam = Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
         run_start, lr_scale = best.score, 1.0
         # The steps of these phases that the schedule's iteration count still allows.
         plan = [phase for phase in phases for _ in range(phase.iterations)][:total - iterations]
@@ -835,7 +611,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
                     # Fallen (RefineSchedule.max_falls): on from the best phantom, fresh moments, shorter steps.
                     falls.append(iterations)
                     z[:], u[:] = best.z_um, best.log_energy
-                    adam = _Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
+                    adam = Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
                     lr_scale *= FALL_LR_FACTOR
                     if lpips_mode == "reuse":  # the kept LPIPS gradient is the fallen iterate's
                         lpips_mode, lpips_kept_at = "keep", step

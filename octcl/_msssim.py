@@ -1,8 +1,9 @@
 """Multi-scale structural similarity (MS-SSIM) as the SynthOCT scorer computes it.
 
 The official metric is ``sewar.full_ref.msssim`` with its defaults, applied to
-8-bit images. :func:`msssim_exact` reproduces it to the last bit on uint8
-input; :func:`msssim_torch` is the same computation in torch, differentiable,
+8-bit images. :func:`msssim_exact` reproduces it on uint8 input to
+float64 rounding (its window applied as two 1-D passes: within 1e−15 of the
+official values); :func:`msssim_torch` is the same computation in torch, differentiable,
 on float images in [0, 1].
 
 MS-SSIM (Wang, Simoncelli & Bovik, "Multiscale structural similarity for
@@ -72,14 +73,23 @@ def _scale_count(shape: tuple[int, ...], requested: int = len(MSSSIM_WEIGHTS)) -
 
 
 def _ssim_and_cs(ref: np.ndarray, pred: np.ndarray, window: np.ndarray) -> tuple[float, float]:
-    """Mean SSIM and mean contrast-structure term of one scale ('valid' window)."""
-    from scipy.signal import convolve2d
+    """Mean SSIM and mean contrast-structure term of one scale ('valid' window).
 
-    # sewar convolves with the window rotated by 180°, i.e. correlates with it.
-    kernel = np.rot90(window, 2)
+    sewar convolves with the 2-D window rotated by 180° (the same window:
+    it is symmetric). The Gaussian is separable, exp(−(x² + y²)/2σ²) =
+    exp(−x²/2σ²)·exp(−y²/2σ²), so the local means are taken as two 1-D
+    passes of its normalised profile: 12× faster than ``convolve2d``
+    (2.2 against 28 ms on 256×512), within 2e−13 of it on levels 0–255 and
+    1e−15 of the official MS-SSIM values (``tests/test_msssim.py``).
+    """
+    from scipy.ndimage import correlate1d
+
+    profile = window.sum(axis=0)  # the normalised 1-D Gaussian: the window is its outer product
+    reach = window.shape[0] // 2
 
     def local_mean(image):
-        return convolve2d(image, kernel, mode="valid")
+        rows = correlate1d(image, profile, axis=0, mode="constant")[reach:-reach]
+        return correlate1d(rows, profile, axis=1, mode="constant")[:, reach:-reach]
 
     mean_ref, mean_pred = local_mean(ref), local_mean(pred)
     mean_ref_sq, mean_pred_sq, mean_cross = mean_ref * mean_ref, mean_pred * mean_pred, mean_ref * mean_pred
@@ -97,7 +107,7 @@ def _ssim_and_cs(ref: np.ndarray, pred: np.ndarray, window: np.ndarray) -> tuple
 
 
 def msssim_exact(ref_levels: np.ndarray, pred_levels: np.ndarray) -> float:
-    """MS-SSIM of two 8-bit images, bit for bit as ``sewar.full_ref.msssim``.
+    """MS-SSIM of two 8-bit images as ``sewar.full_ref.msssim``, to float64 rounding.
 
     Parameters
     ----------

@@ -235,6 +235,14 @@ def _security(args):
                     require_encryption=True)
 
 
+def _process_started() -> float:
+    """``time.monotonic()`` at this process's start (psutil's creation time, 10 ms steps on Linux), so that a
+    time budget counts the interpreter's start and the imports: about 0.5 s on two cores."""
+    import psutil
+
+    return time.monotonic() - max(0.0, time.time() - psutil.Process().create_time())
+
+
 def _cmd_invert(args) -> int:
     config = _config(args)
     if bool(args.targets) == bool(args.target):
@@ -247,8 +255,19 @@ def _cmd_invert(args) -> int:
 
     # Stage options for one scan or each scan of a batch: the fixed schedule's (docs/reproducibility.md)
     # and the target score.
-    schedule = {name: getattr(args, name) for name in ("iterations", "field_iterations", "threads", "target_score")
+    schedule = {name: getattr(args, name)
+                for name in ("iterations", "field_iterations", "field_schedule", "threads", "target_score")
                 if getattr(args, name) is not None}
+    if args.field_schedule is not None:  # refused before any work, a batch's cluster included
+        from .host.field_solve import FieldSchedule
+
+        try:
+            FieldSchedule.parse(args.field_schedule)
+        except ValueError as exc:
+            raise UsageError(f"--field-schedule: {exc}") from None
+        if args.regime != "linear":
+            raise UsageError("--field-schedule is the linear regime's; the physical regime's stage 1 is "
+                             "--field-iterations")
     if args.regime != REGIMES[0]:  # defaults are left out, so earlier batches still resume
         schedule["regime"] = args.regime
     if args.stop_rule != "restarts":
@@ -261,7 +280,7 @@ def _cmd_invert(args) -> int:
             try:
                 result = invert(args.target, args.output, time_budget_s=args.time_budget, seed=args.seed,
                                 report_path=args.report, progress=_invert_progress(display), config=config,
-                                **schedule).as_dict()
+                                started=_process_started(), **schedule).as_dict()
             except TimeBudgetExceeded as exc:  # a budget too small for the fixed schedule asked for
                 raise UsageError(str(exc)) from None
         if args.stop_rule != "restarts":  # the rule decides which steps run, so it is part of the schedule
@@ -394,7 +413,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("target", nargs="?", help="target B-scan (256×512): a PNG, or a .npy of its uint8 grey levels")
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
     p.add_argument("--time-budget", type=float, default=600.0,
-                   help="seconds per scan (default 600); with --iterations only a ceiling that fails the run")
+                   help="seconds per scan (default 600), from the command's start: the phantom is written "
+                        "within it; with --iterations only a ceiling that fails the run")
     p.add_argument("--seed", type=int, default=0, help="seed of the physical regime's random elevations (default 0; "
                                                        "the linear regime draws nothing at random)")
     p.add_argument("--iterations", type=int, metavar="N",
@@ -407,10 +427,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "seconds, decoded exactly into 2 scatterers a pixel at energies too small to shadow; "
                         "physical: the published pipeline, tissue-like energies, minutes (README)")
     p.add_argument("--field-iterations", type=int, metavar="M",
-                   help="stage 1 Adam steps (default 300 linear, 1500 physical; at most, within its time share, "
+                   help="stage 1 Adam steps (default 150 linear, 1500 physical; at most, within its time share, "
                         "without --iterations)")
+    p.add_argument("--field-schedule", metavar="STEPS",
+                   help="the linear regime's stage 1 as named steps, in order, each NAME:ITERATIONS: display "
+                        "(Adam on the display), project (projections onto the levels), hinge (L-BFGS onto the "
+                        "levels); e.g. display:150,project:100,hinge:200 (the default's first candidate)")
     p.add_argument("--threads", type=int, metavar="T",
-                   help="torch CPU threads for the whole run (default with --iterations: 1; without: chosen "
+                   help="CPU threads for the whole run (default with --iterations: 1; without: chosen "
                         "by timing)")
     p.add_argument("--target-score", type=float, metavar="S",
                    help="stop refining once the exact score reaches S (default: when it stops improving)")

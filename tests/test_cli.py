@@ -6,6 +6,7 @@ import os
 import struct
 import subprocess
 import sys
+import time
 import zlib
 from pathlib import Path
 
@@ -466,3 +467,24 @@ def test_npy_that_is_not_a_scan_exits_2_naming_the_file(tmp_path, capsys, offici
     assert (status, out) == (2, "")
     assert err.startswith(f"octcl {argv[0]}: error: {bad}: {message}") and err.count("\n") == 1
     assert sorted(path.name for path in tmp_path.iterdir()) == ["preds", "refs"]  # nothing written
+
+
+def test_invert_budget_starts_with_the_process():
+    """``--time-budget`` counts from the process's start: a time before now, by at most the process's age."""
+    import psutil
+
+    from octcl.cli import _process_started
+
+    started = _process_started()
+    age = time.time() - psutil.Process().create_time()
+    assert time.monotonic() - age - 0.05 <= started <= time.monotonic()
+
+
+@pytest.mark.parametrize("options, message", [(["--field-schedule", "display:20,projekt:5"], "unknown stage-1 step"),
+                                              (["--field-schedule", "display:20", "--regime", "physical"],
+                                               "linear regime's")])
+def test_invert_refuses_a_bad_field_schedule_before_any_work(tmp_path, capsys, official_data, options, message):
+    output = tmp_path / "out.txt"
+    status, _, err = run(capsys, "invert", official_data / "Scan_Exp2_Layers_A.png", "-o", output, *options)
+    assert status == 2 and message in err and err.count("\n") == 1
+    assert not output.exists()

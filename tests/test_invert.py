@@ -159,3 +159,47 @@ def test_a_deadline_run_that_took_no_decision_from_the_clock_repeats(tmp_path, l
     assert fixed.reproducible
     contents = (tmp_path / "timed.txt").read_bytes()
     assert (tmp_path / "two.txt").read_bytes() == contents and (tmp_path / "fixed.txt").read_bytes() == contents
+
+
+def test_stage_1_budget_counts_what_the_budget_has_lost_before_it():
+    from octcl.host.invert import (FIELD_BUDGET_CAP_S, FIELD_BUDGET_FRACTION, LINEAR_WRITE_RESERVE_S,
+                                   MIN_FIELD_BUDGET_S, field_budget_s)
+
+    # Linear: all but the decode-and-write reserve and what the process's start took.
+    assert field_budget_s("linear", 5.0, 0.7) == pytest.approx(5.0 - 0.7 - LINEAR_WRITE_RESERVE_S)
+    assert field_budget_s("linear", 600.0, 0.7) == FIELD_BUDGET_CAP_S
+    assert field_budget_s("linear", 1.0, 0.9) == MIN_FIELD_BUDGET_S  # late, but a phantom
+    # Physical: its share of the budget, from the start.
+    assert field_budget_s("physical", 100.0, 0.5) == pytest.approx(FIELD_BUDGET_FRACTION * 100.0 - 0.5)
+    assert field_budget_s("physical", 6000.0, 0.5) == pytest.approx(FIELD_BUDGET_CAP_S - 0.5)
+
+
+def test_budget_runs_from_the_start_it_is_given(layers_path, tmp_path):
+    """A budget that began 2 s before the call leaves stage 1 2 s less; the write's time counts from that start."""
+    from octcl.host.invert import LINEAR_WRITE_RESERVE_S
+
+    started = time.monotonic() - 2.0
+    result = invert(layers_path, tmp_path / "out.txt", time_budget_s=6.0, report_path=tmp_path / "r.json",
+                    started=started)
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["settings"]["field_budget_s"] <= 6.0 - 2.0 - LINEAR_WRITE_RESERVE_S
+    assert 2.0 < result.seconds["written"] <= result.seconds["total"]
+
+
+def test_the_linear_regime_writes_its_phantom_before_importing_torch(layers_path, tmp_path):
+    """Stages 1–2 of one candidate need neither torch nor the scorer: the first write comes before both (2 s)."""
+    output = tmp_path / "out.txt"
+    code = (
+        "import sys\n"
+        "from octcl.host.invert import invert\n"
+        "seen = []\n"
+        f"def progress(state, output={str(output)!r}):\n"
+        "    import os\n"
+        "    if state.stage == 'setup' and not seen:\n"
+        "        seen.append((os.path.exists(output), 'torch' in sys.modules))\n"
+        f"invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=60, progress=progress)\n"
+        "print(seen[0])\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "(True, False)"  # written, torch not yet imported

@@ -11,6 +11,7 @@ from octcl import _reference as ref
 from octcl._io import GREY_LUT
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.host.field import FieldOperator
+from octcl.host.field_solve import default_schedules, display, project
 from octcl.host.linear import (INTERVAL_MARGIN, LEVEL_CHECK_EVERY, LEVEL_FIT_ITERATIONS, SHADOW_BOUND,
                                _carriers, decode_exact, fit_levels, level_magnitude_bounds, linear_start, rendered_cells, retrieve_field, row_depths_um, row_offsets_um,
                                split_on_carriers)
@@ -205,9 +206,11 @@ def test_linear_start_stops_trying_once_a_candidate_renders_every_aimed_level(of
     from octcl.host.target import read_target, target_scan
 
     levels = target_scan(read_target(official_data / "Scan_Exp2_Layers_A.png"))
-    found = linear_start(levels, lambda rendered: 0.0, adam_steps=150, threads=1)
+    found = linear_start(levels, lambda rendered: 0.0, schedules=default_schedules(150), threads=1)
     assert [c["identical"] for c in found.candidates] == [1.0]
-    plain = linear_start(levels, lambda rendered: 0.0, adam_steps=150, threads=1, level_iterations=0)
+    assert [step["name"] for step in found.candidates[0]["steps"]][:2] == ["display", "project"]
+    plain = linear_start(levels, lambda rendered: 0.0, threads=1,
+                         schedules=(display(150) + project(100), display(75) + project(100)))
     assert len(plain.candidates) == 2 and max(c["identical"] for c in plain.candidates) < 1.0
 
 
@@ -247,14 +250,15 @@ def test_linear_start_keeps_the_best_scoring_candidate():
     levels = _scanner_made_target(2)
     scores = iter([0.5, 0.9, 0.7])  # the second candidate (half the steps) scores best
     calls = []
-    found = linear_start(levels, lambda rendered: next(scores), adam_steps=10, lengths=(1.0, 0.5, 2.0),
-                         projections=20, threads=1, progress=lambda step, steps: calls.append((step, steps)),
-                         level_iterations=0)
-    assert [c["adam_steps"] for c in found.candidates] == [10, 5, 20]
+    schedules = tuple(display(steps) + project(20) for steps in (10, 5, 20))
+    found = linear_start(levels, lambda rendered: next(scores), schedules=schedules, threads=1,
+                         progress=lambda step, steps: calls.append((step, steps)))
+    assert [c["schedule"] for c in found.candidates] == ["display:10,project:20", "display:5,project:20",
+                                                         "display:20,project:20"]
     assert [c["score"] for c in found.candidates] == [0.5, 0.9, 0.7]
-    assert found.adam_steps == 5 and found.clock_steps == 0 and found.threads == 1
+    assert found.schedule == schedules[1] and found.clock_steps == 0 and found.threads == 1
     assert calls[-1] == (35 + 60, 35 + 60)
-    # The chosen field is the second candidate's, as linear_start made it.
+    # The chosen field is the second candidate's, as its steps made it.
     from octcl.host.field import fit_field
 
     again = retrieve_field(levels, iterations=20, initial=fit_field(levels, iterations=5, time_budget_s=None,
@@ -264,7 +268,8 @@ def test_linear_start_keeps_the_best_scoring_candidate():
 
 def test_linear_start_leaves_out_candidates_the_budget_cannot_hold():
     levels = _scanner_made_target(2)
-    found = linear_start(levels, lambda rendered: float(np.mean(rendered == levels)), adam_steps=400,
-                         time_budget_s=0.5, threads=1)
+    found = linear_start(levels, lambda rendered: float(np.mean(rendered == levels)),
+                         schedules=default_schedules(400), time_budget_s=0.5, threads=1)
     assert len(found.candidates) == 1 and found.clock_steps >= 1
-    assert found.candidates[0]["adam_steps"] < 400  # the first fit was cut by its share of the budget
+    display_record = found.candidates[0]["steps"][0]
+    assert display_record["name"] == "display" and display_record["iterations"] < 400  # cut by its share

@@ -12,7 +12,7 @@ from scipy.ndimage import gaussian_filter
 from octcl._io import GREY_LUT, read_png_rgb, read_scan
 from octcl._reference import quantise
 from octcl.host.loss import QUANTISER_SLOPE, DisplayLoss, ExactScore, LossWeights, scan_of_levels
-from octcl.host.refine import MAX_ENERGY_PCT, Phase, RefineSchedule, _Adam, refine, saved_precision
+from octcl.host.refine import MAX_ENERGY_PCT, Phase, RefineSchedule, refine, saved_precision
 from octcl.host.target import read_target
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.scorer import COMPONENTS, score
@@ -172,15 +172,6 @@ def test_exact_score_matches_the_scorer_on_saved_files(layers_path, uniform_leve
     assert got == pytest.approx(expected, abs=0, rel=0)
     assert set(COMPONENTS) < set(got)
     np.testing.assert_array_equal(scan_of_levels(levels), read_scan(tmp_path / "pred.png"))
-
-
-def test_adam_matches_the_textbook_update():
-    """One step from zero moments moves every parameter by −lr·sign(g) (bias-corrected Adam)."""
-    adam = _Adam([(3,), (2,)], beta1=0.9, beta2=0.999, epsilon=1e-20)
-    first, second = np.array([1.0, 2.0, 3.0]), np.array([0.5, -0.5])
-    adam.step((first, second), (np.array([1e-12, -4.0, 0.0]), np.array([3.0, -1e-9])), (0.1, 0.01))
-    np.testing.assert_allclose(first, [0.9, 2.1, 3.0])
-    np.testing.assert_allclose(second, [0.49, -0.49])
 
 
 def test_short_schedule_improves_on_stage_2(stage2_phantom, layers_target):

@@ -1,0 +1,134 @@
+"""Levels chosen for the score: which side of each unwritable level a phantom renders.
+
+Where the target has a level the scanner never writes (:mod:`octcl.host.ceiling`),
+a phantom renders L − 1 or L + 1. Error diffusion chooses the sides so that
+the local mean of the levels is kept (:func:`octcl.host.ceiling.error_diffused`,
+the start). :class:`AimSearch` then moves sides where the exact score
+(:class:`octcl.host.loss.ExactScore`) gains, guided by the gradient of the
+loss's differentiable twins of the score's terms through the
+straight-through quantiser (:class:`octcl.host.loss.DisplayLoss` with
+:data:`SCORE_WEIGHTS`).
+
+A round: with g = ∂loss/∂D at the display D(a) of the aim a (each level at
+the centre of its display interval), the change of loss from moving pixel
+p to its other side a'_p is predicted as g_p·(D(a'_p) − D(a_p)); the
+``batch`` pixels of most negative prediction move together, and the move
+is kept only if the exact score of the new levels is higher and the field
+can render them (a short hinge fit, :func:`octcl.host.linear.fit_levels`,
+puts every pixel at its new level); a moved pixel is not moved again. The score is
+not additive over pixels (MS-SSIM and LPIPS see neighbourhoods, and the
+speckle-contrast maps the local spread): on orange.png moving 951 pixels at
+once (a tenth of the unwritable ones) lost 2.6e−5, 317 lost 8e−6, while
+batches of 11, 3 and 1 gained 1e−6 to 6e−6 each, 1e−5 in all after 12
+rounds. So a kept batch stays the same size and a rejected one halves; a
+single pixel whose move was rejected is not proposed again until a move is
+kept (the gradient is that of the same aim until then), and the search stops
+after :data:`PATIENCE` rejections of a single pixel in a row.
+
+Only unwritable pixels move: a writable pixel's own level is the best side
+there is. A target the scanner could have written has none, and the search
+costs nothing there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .ceiling import WRITABLE
+from .field import _display_of_level
+from .schedule import LossWeights
+
+#: The loss whose gradient proposes moves: the score's own terms, equally weighted (MS-SSIM of the
+#: Struct and OAC maps, LPIPS of all four; the loss has no MS-SSIM of SC and RSC), no pixel terms.
+SCORE_WEIGHTS = LossWeights(pixel=0.0, sc_l1=0.0, oac_l1=0.0, oac_lpips=1.0, oac_msssim=1.0, struct_msssim=1.0,
+                            struct_lpips=1.0, sc_lpips=1.0, rsc_lpips=1.0)
+#: Pixels moved together in the first round.
+FIRST_BATCH = 16
+#: Rejected single-pixel moves in a row after which a search stops.
+PATIENCE = 3
+
+
+@dataclass
+class AimSearch:
+    """Moves of unwritable pixels to their other side, kept where the exact score gains (module docstring).
+
+    Parameters
+    ----------
+    levels : ndarray of uint8, (Nz, Nx)
+        The target's levels.
+    score : callable
+        ``score(levels) -> float``, the exact score against the target.
+    """
+
+    levels: np.ndarray
+    score: object
+    batch: int = FIRST_BATCH
+    rejections: int = 0
+    _loss: object = None
+
+    def __post_init__(self):
+        self.movable = ~WRITABLE[self.levels]  # only the target's unwritable pixels move
+        self._rejected = np.zeros(self.levels.size, bool)  # single moves rejected at the current aim
+        self._settled = np.zeros(self.levels.size, bool)  # pixels moved by a kept move
+        self._change = None  # (aim, predicted loss change per pixel) of the last gradient
+
+    @property
+    def done(self) -> bool:
+        return not self.movable.any() or (self.batch == 1 and self.rejections >= PATIENCE)
+
+    def _predicted_change(self, aim: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """g_p·(D(a'_p) − D(a_p)) for every pixel (0 where it may not move), and a' (module docstring)."""
+        other = (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)  # L ± 1 ↔ L ∓ 1
+        if self._change is None or not np.array_equal(self._change[0], aim):
+            if self._loss is None:
+                from .loss import DisplayLoss, scan_of_levels
+
+                self._loss = DisplayLoss(scan_of_levels(self.levels), SCORE_WEIGHTS)
+            display_of = _display_of_level()
+            gradient = self._loss(display_of[aim]).grad_display
+            change = np.where(self.movable, gradient * (display_of[other] - display_of[aim]), 0.0).ravel()
+            self._change = (aim.copy(), change)
+        return self._change[1], other
+
+    def proposal(self, aim: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``aim`` with the ``batch`` pixels of most negative predicted change on their other side, and their
+        flat indices."""
+        change, other = self._predicted_change(aim)
+        change = np.where(self._rejected | self._settled, 0.0, change)
+        picks = np.argsort(change, kind="stable")[:self.batch]
+        picks = picks[change[picks] < 0]
+        proposed = aim.copy()
+        proposed.flat[picks] = other.flat[picks]
+        return proposed, picks
+
+    def step(self, aim: np.ndarray, aim_score: float, reach=None) -> tuple[np.ndarray, float, object]:
+        """One round from ``aim`` (whose exact score is ``aim_score``).
+
+        ``reach(levels)`` returns a field that renders ``levels`` exactly,
+        or None where it cannot: a move that gains is kept only where the
+        field can follow it. Returns the aim kept, its score, and the field
+        ``reach`` gave for it (None where the aim did not move).
+        """
+        proposed, picks = self.proposal(aim)
+        if not picks.size:  # nothing predicted to gain
+            self.batch, self.rejections = 1, PATIENCE
+            return aim, aim_score, None
+        proposed_score = float(self.score(proposed))
+        reached = None
+        if proposed_score > aim_score:
+            reached = reach(proposed) if reach is not None else True
+        if reached is not None:
+            self.rejections = 0
+            self._rejected[:] = False
+            self._settled[picks] = True  # a moved pixel is decided: the next gradient would often move it back
+            return proposed, proposed_score, reached
+        if self.batch == 1:
+            self.rejections += 1
+            self._rejected[picks] = True
+        self.batch = max(1, self.batch // 2)
+        return aim, aim_score, None
+
+
+__all__ = ["AimSearch", "FIRST_BATCH", "PATIENCE", "SCORE_WEIGHTS"]

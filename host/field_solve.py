@@ -1,0 +1,326 @@
+"""Stage 1 of the linear regime as data: named steps, schedules of them, and the solve that runs one.
+
+As in PyNX's operators (Favre-Nicolin et al., "PyNX: high-performance
+computing toolkit for coherent X-ray imaging based on operators",
+J. Appl. Cryst. 53, 2020), the algorithm is a value a user composes, not
+code: ``display(150) + project(100) + hinge(200)`` is the default, and
+``FieldSchedule.parse("display:150,project:100,hinge:200")`` the same from
+``octcl invert --field-schedule``. One :class:`FieldSolve` carries a run's
+state (the field, the aimed levels, the FFT threads) and its history; one
+step (:data:`STEPS`) is a function apart from the loop that runs them.
+
+Steps, each from the field the previous one left (the first from the
+regularised inverse of the de-logged target with zero phase):
+
+- ``display``: :func:`octcl.host.field.fit_field`, Adam on the display
+  loss: puts the dark pixels near their levels and keeps the field's norm
+  near its rendering's.
+- ``project``: :func:`octcl.host.linear.retrieve_field`, accelerated
+  projections onto the aimed levels' intervals: most pixels onto their level.
+- ``hinge``: :func:`octcl.host.linear.fit_levels`, L-BFGS on the squared
+  distance to the intervals, the brightest pixel pinned: the last pixels.
+- ``aim``: :class:`octcl.host.aim.AimSearch`, rounds that move unwritable
+  pixels of the aim to their other side where the exact score gains and a
+  short hinge fit can follow; from a field at its aim, which it keeps there.
+
+Rules the loop keeps: a field step that leaves fewer pixels at their aimed
+level than the best field so far is undone (the field goes back; its record
+says ``kept: False``), and while every pixel is at its aimed level the
+field steps are skipped. Under a time budget each
+step gets its ``share`` of the time left when it starts (the last all of
+it): display 1/2, project :data:`PROJECTION_SHARE` of the rest, hinge the
+rest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import DEFAULT_CONFIG, ScannerConfig
+from ..render import Rendering
+from .field import FieldOperator, target_magnitude
+
+#: Under a time budget, the projections' share of what the display fit before them leaves (the hinge fit
+#: gets the rest). With ``--time-budget 3`` (Uniform B, skin_0, orange in one process) 1/3, 1/2 and 0.7
+#: gave 0.96263/0.99999/0.99990, 0.98773/1.00000/0.99990 and 0.99437/0.99997/0.99990; with 5 s all
+#: were within 7e−6 of each other (docs/benchmarks.md).
+PROJECTION_SHARE = 0.5
+#: Each step's share of the time left when it starts, unless the step says otherwise (module docstring).
+DEFAULT_SHARES = {"display": 0.5, "project": PROJECTION_SHARE, "hinge": 1.0, "aim": 0.7}
+#: Seconds of the aim step's first round, before it has a pace: torch's import, the loss's LPIPS network and
+#: target maps, a gradient and an exact score (2–3 s on two cores).
+AIM_FIRST_ROUND_S = 2.5
+#: Rounds of the default schedules' aim step (:func:`default_schedules`).
+DEFAULT_AIM_ROUNDS = 4
+#: Hinge iterations at most for the field to follow a move of the aim step (a few pixels, two levels each):
+#: 10–80 on orange.png.
+AIM_HINGE_ITERATIONS = 100
+
+
+@dataclass(frozen=True)
+class FieldStep:
+    """``iterations`` of one named step (:data:`STEPS`); ``share`` of the time left when it starts.
+
+    ``a + b`` is the schedule that runs a, then b.
+    """
+
+    name: str
+    iterations: int
+    share: float | None = None
+
+    def __post_init__(self):
+        if self.name not in STEPS:
+            raise ValueError(f"unknown stage-1 step {self.name!r}; the steps are {', '.join(STEPS)}")
+        if not (isinstance(self.iterations, int) and self.iterations >= 1):
+            raise ValueError(f"step {self.name}: iterations must be a whole number ≥ 1, got {self.iterations!r}")
+        if self.share is not None and not 0 < self.share <= 1:
+            raise ValueError(f"step {self.name}: share must be in (0, 1], got {self.share!r}")
+
+    @property
+    def time_share(self) -> float:
+        return DEFAULT_SHARES[self.name] if self.share is None else self.share
+
+    def __add__(self, other) -> "FieldSchedule":
+        return FieldSchedule((self,)) + other
+
+    def __str__(self) -> str:
+        return f"{self.name}:{self.iterations}"
+
+
+@dataclass(frozen=True)
+class FieldSchedule:
+    """Steps run in order by :meth:`FieldSolve.run`."""
+
+    steps: tuple
+
+    def __post_init__(self):
+        if not self.steps or not all(isinstance(step, FieldStep) for step in self.steps):
+            raise ValueError("a stage-1 schedule is one or more steps")
+
+    def __add__(self, other) -> "FieldSchedule":
+        more = (other,) if isinstance(other, FieldStep) else other.steps
+        return FieldSchedule(self.steps + tuple(more))
+
+    @property
+    def iterations(self) -> int:
+        return sum(step.iterations for step in self.steps)
+
+    @property
+    def display_iterations(self) -> int:
+        """Steps of the display fits (the ``--field-iterations`` of a default schedule)."""
+        return sum(step.iterations for step in self.steps if step.name == "display")
+
+    def __str__(self) -> str:
+        return ",".join(str(step) for step in self.steps)
+
+    @classmethod
+    def parse(cls, text: str) -> "FieldSchedule":
+        """``"display:150,project:100,hinge:200"``: NAME:ITERATIONS, comma-separated, in order."""
+        steps = []
+        for part in str(text).split(","):
+            name, _, count = part.strip().partition(":")
+            if not count.strip().isdigit():
+                raise ValueError(f"stage-1 schedule {text!r}: {part.strip()!r} is not NAME:ITERATIONS "
+                                 f"(e.g. display:150,project:100,hinge:200)")
+            steps.append(FieldStep(name.strip(), int(count)))
+        return cls(tuple(steps))
+
+
+def display(iterations: int, share: float | None = None) -> FieldStep:
+    """A display fit of ``iterations`` Adam steps (module docstring)."""
+    return FieldStep("display", iterations, share)
+
+
+def project(iterations: int, share: float | None = None) -> FieldStep:
+    """``iterations`` accelerated projections onto the aimed intervals (module docstring)."""
+    return FieldStep("project", iterations, share)
+
+
+def aim(rounds: int, share: float | None = None) -> FieldStep:
+    """Up to ``rounds`` rounds choosing the sides of the unwritable levels for the score (module docstring)."""
+    return FieldStep("aim", rounds, share)
+
+
+def hinge(iterations: int, share: float | None = None) -> FieldStep:
+    """At most ``iterations`` L-BFGS iterations of the hinge fit (module docstring)."""
+    return FieldStep("hinge", iterations, share)
+
+
+@dataclass
+class StepRecord:
+    """What one step did: :attr:`FieldSolve.history`."""
+
+    name: str
+    iterations: int    # taken
+    identical: float   # share of pixels at their aimed level after it
+    seconds: float
+    clock_steps: int   # 1 where the time budget cut it short
+    kept: bool         # False: it lost pixels and was undone
+
+
+@dataclass
+class FieldSolve:
+    """One stage-1 run: the target's levels, the levels aimed at, the field so far and the history.
+
+    Parameters
+    ----------
+    levels : ndarray of uint8, (Nz, Nx)
+        The target's levels.
+    aim : ndarray of uint8, (Nz, Nx)
+        The levels to render (:func:`octcl.host.ceiling.aimed_levels`).
+    config : ScannerConfig
+    threads : int, optional
+        FFT threads; the first display fit times 1 and all cores where None
+        and the rest keep its choice.
+    score : callable, optional
+        ``score(levels) -> float``, the exact score against the target: the
+        ``aim`` step's judge (:class:`octcl.host.aim.AimSearch`).
+    """
+
+    levels: np.ndarray
+    aim: np.ndarray
+    config: ScannerConfig = DEFAULT_CONFIG
+    threads: int | None = None
+    score: object = None
+    field: np.ndarray | None = None
+    identical: float = 0.0
+    history: list = dataclasses.field(default_factory=list)
+    aim_search: object = None
+
+    def start_field(self) -> np.ndarray:
+        """The field before any step: the regularised inverse of the de-logged target, zero phase."""
+        operator = FieldOperator(self.config, self.threads or 1)
+        return operator.pseudo_inverse(target_magnitude(self.levels).astype(np.complex128))
+
+    def share_at_aim(self, field_now: np.ndarray) -> float:
+        """Share of pixels the field renders at their aimed level."""
+        return float(np.mean(Rendering.from_a_scans(FieldOperator(self.config).apply(field_now)).levels
+                             == self.aim))
+
+    def run(self, schedule: FieldSchedule, time_budget_s: float | None = None, progress=None) -> "FieldSolve":
+        """Run ``schedule``'s steps in order (module docstring); returns ``self``.
+
+        ``progress(iteration, iterations)`` over the schedule's iterations.
+        """
+        start = time.perf_counter()
+        done = 0
+        for index, step in enumerate(schedule.steps):
+            if step.name != "aim" and self.identical == 1.0:
+                done += step.iterations
+                continue  # every pixel at its aimed level: no field step can gain
+            last = index == len(schedule.steps) - 1
+            budget = None if time_budget_s is None else \
+                max(0.0, (1.0 if last else step.time_share) * (time_budget_s - (time.perf_counter() - start)))
+
+            def step_progress(taken, planned, offset=done):
+                if progress is not None:
+                    progress(offset + min(taken, planned), schedule.iterations)
+
+            began = time.perf_counter()
+            candidate, taken, clock_steps = STEPS[step.name](self, step.iterations, budget, step_progress)
+            identical = self.share_at_aim(candidate)
+            # A field step that leaves fewer pixels at their level is undone; the aim step moves the aim itself.
+            kept = self.field is None or identical >= self.identical or step.name == "aim"
+            if kept:
+                self.field, self.identical = candidate, identical
+            self.history.append(StepRecord(step.name, taken, identical, time.perf_counter() - began, clock_steps,
+                                           kept))
+            done += step.iterations
+        return self
+
+    @property
+    def clock_steps(self) -> int:
+        return sum(record.clock_steps for record in self.history)
+
+
+def _display_step(solve: FieldSolve, iterations: int, budget_s, progress):
+    from .field import fit_field
+
+    fit = fit_field(solve.levels, solve.config, iterations=iterations, time_budget_s=budget_s,
+                    threads=solve.threads, initial=solve.field,
+                    progress=lambda taken, planned, loss: progress(taken, planned))
+    solve.threads = fit.threads
+    return fit.field, fit.iterations, min(fit.clock_steps, 1)
+
+
+def _project_step(solve: FieldSolve, iterations: int, budget_s, progress):
+    from .linear import retrieve_field
+
+    fit = retrieve_field(solve.levels, solve.config, iterations=iterations, time_budget_s=budget_s,
+                         initial=solve.field, aim=solve.aim, workers=solve.threads or 1, progress=progress)
+    return fit.field, fit.iterations, fit.clock_steps
+
+
+def _hinge_step(solve: FieldSolve, iterations: int, budget_s, progress):
+    from .linear import fit_levels
+
+    start = solve.start_field() if solve.field is None else solve.field
+    fit = fit_levels(start, solve.aim, solve.config, iterations=iterations, time_budget_s=budget_s,
+                     workers=solve.threads or 1)
+    progress(fit.iterations, iterations)
+    return fit.field, fit.iterations, fit.clock_steps
+
+
+def _aim_step(solve: FieldSolve, rounds: int, budget_s, progress):
+    """Up to ``rounds`` rounds of :class:`octcl.host.aim.AimSearch` on ``solve.aim``; the field stays.
+
+    Nothing to do (and no torch) for a target without unwritable levels.
+    Under a budget a round starts only while the rounds so far, at their
+    measured pace (the first with the loss's construction, an estimate of
+    :data:`AIM_FIRST_ROUND_S` before it), end within it.
+    """
+    from .aim import AimSearch
+
+    if solve.score is None:
+        raise ValueError("the aim step needs the exact score (FieldSolve's score)")
+    if solve.aim_search is None:
+        solve.aim_search = AimSearch(solve.levels, solve.score)
+    search, start, taken, clock_steps = solve.aim_search, time.perf_counter(), 0, 0
+    if search.done or solve.identical < 1.0:  # nothing to move, or a field not yet at its aim to start from
+        return solve.field, 0, 0
+
+    def reach(levels):
+        from .linear import fit_levels
+
+        fit = fit_levels(solve.field, levels, solve.config, iterations=AIM_HINGE_ITERATIONS, workers=solve.threads or 1)
+        return fit.field if fit.identical == 1.0 else None
+
+    aim_score = None
+    while taken < rounds and not search.done:
+        spent = time.perf_counter() - start
+        pace = spent / taken if taken else AIM_FIRST_ROUND_S
+        if budget_s is not None and spent + pace > budget_s:
+            clock_steps = 1
+            break
+        if aim_score is None:
+            aim_score = float(solve.score(solve.aim))
+        aimed, aim_score, field = search.step(solve.aim, aim_score, reach)
+        if field is not None:
+            solve.aim, solve.field = aimed, field
+        taken += 1
+        progress(taken, rounds)
+    return solve.field, taken, clock_steps
+
+
+#: The steps by name: ``function(solve, iterations, budget_s, progress) -> (field, iterations taken, clock steps)``.
+STEPS = {"display": _display_step, "project": _project_step, "hinge": _hinge_step, "aim": _aim_step}
+
+
+def default_schedules(display_iterations: int) -> tuple:
+    """The linear regime's stage-1 candidates, tried in order (:func:`octcl.host.linear.linear_start`):
+    ``display(N) + project(100) + hinge(200) + aim(DEFAULT_AIM_ROUNDS)``, then the same with N/2 display
+    steps (:data:`octcl.host.linear.START_LENGTHS`). The aim step does nothing on a target without
+    unwritable levels."""
+    from .linear import LEVEL_FIT_ITERATIONS, START_LENGTHS, START_PROJECTIONS
+
+    return tuple(display(max(1, round(length * display_iterations))) + project(START_PROJECTIONS)
+                 + hinge(LEVEL_FIT_ITERATIONS) + aim(DEFAULT_AIM_ROUNDS)
+                 for length in START_LENGTHS)
+
+
+__all__ = ["AIM_FIRST_ROUND_S", "DEFAULT_SHARES", "PROJECTION_SHARE", "FieldSchedule", "FieldSolve", "FieldStep",
+           "STEPS", "StepRecord", "aim", "default_schedules", "display", "hinge", "project"]

@@ -1,0 +1,64 @@
+"""Levels chosen for the score (host/aim.py): moves of unwritable pixels, kept where the score gains."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from octcl._io import GREY_LUT
+from octcl.host.aim import FIRST_BATCH, PATIENCE, AimSearch
+from octcl.host.ceiling import WRITABLE, error_diffused
+
+
+def test_a_target_the_scanner_could_write_has_nothing_to_move():
+    def no_score(_):
+        raise AssertionError("nothing to move: nothing to score")
+
+    levels = GREY_LUT[np.random.default_rng(0).integers(0, 256, (256, 512))].astype(np.uint8)
+    assert AimSearch(levels, no_score).done
+
+
+@pytest.fixture(scope="module")
+def target():
+    """A smooth full-size target with a tenth of its pixels at unwritable levels."""
+    rng = np.random.default_rng(1)
+    rows = np.linspace(40, 220, 256)[:, None] + rng.normal(0, 8, (256, 512))
+    levels = np.clip(rows, 0, 255).astype(np.uint8)
+    unwritable = np.flatnonzero(~WRITABLE)
+    picks = rng.random(levels.shape) < 0.1
+    levels[picks] = rng.choice(unwritable[(unwritable > 30) & (unwritable < 240)], picks.sum())
+    return levels
+
+
+def test_a_move_that_gains_and_that_the_field_follows_is_kept(target):
+    gains = itertools.count(1)
+    search = AimSearch(target, lambda levels: float(next(gains)))
+    aim = error_diffused(target)
+    moved, score, field = search.step(aim, 0.0, reach=lambda levels: "field")
+    assert field == "field" and score == 1.0
+    changed = moved != aim
+    assert 0 < changed.sum() <= FIRST_BATCH
+    assert not WRITABLE[target[changed]].any()  # only unwritable pixels move, each to its other side
+    assert np.array_equal(moved[changed].astype(int) + aim[changed], 2 * target[changed].astype(int))
+    # A moved pixel is decided: the next move leaves it where it is.
+    again, _, _ = search.step(moved, score, reach=lambda levels: "field")
+    assert np.array_equal(again[changed], moved[changed]) and not np.array_equal(again, moved)
+
+
+def test_a_move_the_field_cannot_follow_is_refused(target):
+    search = AimSearch(target, lambda levels: 2.0)
+    aim = error_diffused(target)
+    kept, score, field = search.step(aim, 1.0, reach=lambda levels: None)
+    assert field is None and score == 1.0 and np.array_equal(kept, aim)
+    assert search.batch == FIRST_BATCH // 2
+
+
+def test_a_search_that_never_gains_halves_its_batch_then_stops(target):
+    search = AimSearch(target, lambda levels: 0.0)
+    aim = error_diffused(target)
+    rounds = 0
+    while not search.done:
+        kept, _, _ = search.step(aim, 1.0)
+        assert np.array_equal(kept, aim)
+        rounds += 1
+    assert search.batch == 1 and rounds == int(np.log2(FIRST_BATCH)) + PATIENCE

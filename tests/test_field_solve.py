@@ -1,0 +1,99 @@
+"""Stage 1 as data: steps, schedules, and the solve that runs them (host/field_solve.py)."""
+
+import numpy as np
+import pytest
+
+from octcl import _reference as ref
+from octcl.config import ScannerConfig
+from octcl.host.field_solve import (FieldSchedule, FieldSolve, FieldStep, default_schedules, display, hinge,
+                                    project)
+from octcl.host.linear import fit_levels, retrieve_field
+from octcl.phantom import Phantom
+
+#: A small scanner (32 rows, 48 A-scans of 6 µm): each step in milliseconds.
+SMALL = ScannerConfig(depth_pixels=32, a_scans=48, xmax_um=288.0)
+
+
+@pytest.fixture(scope="module")
+def small_levels():
+    """The reference scanner's levels of a random phantom on the small grid: a target every step can reach."""
+    rng = np.random.default_rng(4)
+    n = 600
+    phantom = Phantom(rng.uniform(-140, 140, n), rng.uniform(-3, 3, n), rng.uniform(0, SMALL.depth_pixels * 6.0, n),
+                      rng.lognormal(-6, 1.5, n))
+    return ref.render_reference(phantom, SMALL).levels
+
+
+def test_a_schedule_is_composed_parsed_and_written_back():
+    schedule = display(150) + project(100) + hinge(200)
+    assert schedule == FieldSchedule.parse("display:150, project:100,hinge:200")
+    assert str(schedule) == "display:150,project:100,hinge:200"
+    assert schedule.iterations == 450 and schedule.display_iterations == 150
+    assert (display(10) + (project(5) + hinge(3))).steps == (display(10), project(5), hinge(3))
+    first, second = default_schedules(150)
+    assert str(first) == "display:150,project:100,hinge:200,aim:4" and second.display_iterations == 75
+
+
+@pytest.mark.parametrize("text, message", [("display", "NAME:ITERATIONS"), ("raar:20", "unknown stage-1 step"),
+                                           ("display:0", "≥ 1"), ("project:-3", "NAME:ITERATIONS"),
+                                           ("", "NAME:ITERATIONS")])
+def test_a_bad_schedule_is_refused_naming_the_part(text, message):
+    with pytest.raises(ValueError, match=message):
+        FieldSchedule.parse(text)
+
+
+def test_a_step_with_a_bad_share_is_refused():
+    with pytest.raises(ValueError, match="share"):
+        FieldStep("hinge", 10, share=1.5)
+
+
+def test_the_steps_run_in_order_each_from_the_field_the_last_left(small_levels):
+    """project then hinge: the same field as calling them in turn."""
+    solve = FieldSolve(small_levels, small_levels, SMALL, threads=1).run(project(30) + hinge(20))
+    projected = retrieve_field(small_levels, SMALL, iterations=30)
+    by_hand = fit_levels(projected.field, small_levels, SMALL, iterations=20)
+    if solve.history[-1].kept:
+        np.testing.assert_array_equal(solve.field, by_hand.field)
+    assert [record.name for record in solve.history] == ["project", "hinge"]
+    assert solve.history[0].identical == pytest.approx(projected.identical)
+
+
+def test_a_step_that_loses_pixels_is_undone_and_a_solve_stops_at_the_aim(small_levels):
+    solve = FieldSolve(small_levels, small_levels, SMALL, threads=1).run(project(60) + hinge(200))
+    assert solve.identical == 1.0  # the small target is reached
+    reached = solve.field.copy()
+    # A short display fit from an exact field loses pixels: undone. Nothing after the aim is reached runs.
+    solve.identical = 0.999  # as if one pixel were off, so that the display fit runs
+    solve.run(FieldSchedule((display(3),)))
+    assert solve.history[2].name == "display" and not solve.history[2].kept and solve.history[2].identical < 0.999
+    np.testing.assert_array_equal(solve.field, reached)
+    again = FieldSolve(small_levels, small_levels, SMALL, threads=1).run(project(60) + hinge(200) + display(5))
+    assert [record.name for record in again.history] == ["project", "hinge"]
+
+
+def test_under_a_budget_each_step_gets_its_share(small_levels):
+    """A budget far too small for the steps: the display fit and the projections are cut by the clock (the
+    hinge fit may reach the aim first), and the whole ends near the budget."""
+    import time
+
+    solve = FieldSolve(small_levels, small_levels, SMALL, threads=1)
+    start = time.perf_counter()
+    solve.run(display(10**5) + project(10**5) + hinge(10**5), time_budget_s=0.3)
+    assert time.perf_counter() - start < 0.3 + 0.2
+    assert [record.clock_steps for record in solve.history[:2]] == [1, 1]
+    assert all(record.iterations < 10**5 for record in solve.history)
+
+
+def test_the_aim_step_needs_a_score_and_a_field_at_its_aim(small_levels):
+    from octcl.host.field_solve import aim
+
+    plain = small_levels.copy()
+    plain[::3, ::5] = 37  # unwritable: something to move
+    with pytest.raises(ValueError, match="exact score"):
+        FieldSolve(plain, plain, SMALL, threads=1).run(project(2) + aim(3))
+
+    def no_score(_):
+        raise AssertionError("the field is not at its aim yet: nothing to score")
+
+    solve = FieldSolve(plain, plain, SMALL, threads=1, score=no_score).run(project(2) + aim(3))
+    assert solve.identical < 1.0 and solve.history[-1].name == "aim" and solve.history[-1].iterations == 0
