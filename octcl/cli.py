@@ -236,8 +236,8 @@ def _security(args):
 
 
 def _process_started() -> float:
-    """``time.monotonic()`` at this process's start (psutil's creation time, 10 ms steps on Linux), so that a
-    time budget counts the interpreter's start and the imports: about 0.5 s on two cores."""
+    """``time.monotonic()`` at this process's start (psutil's creation time, 10 ms steps on Linux), so that the
+    ``octcl`` program's time budget counts the interpreter's start and the imports: about 0.5 s on two cores."""
     import psutil
 
     return time.monotonic() - max(0.0, time.time() - psutil.Process().create_time())
@@ -280,7 +280,7 @@ def _cmd_invert(args) -> int:
             try:
                 result = invert(args.target, args.output, time_budget_s=args.time_budget, seed=args.seed,
                                 report_path=args.report, progress=_invert_progress(display), config=config,
-                                started=_process_started(), **schedule).as_dict()
+                                started=args.started, **schedule).as_dict()
             except TimeBudgetExceeded as exc:  # a budget too small for the fixed schedule asked for
                 raise UsageError(str(exc)) from None
         if args.stop_rule != "restarts":  # the rule decides which steps run, so it is part of the schedule
@@ -471,8 +471,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
+def command() -> int:
+    """The ``octcl`` program: :func:`main` of the command line, its time budgets counted from the process's
+    start (:func:`_process_started`)."""
+    return main(started=_process_started())
+
+
+def main(argv=None, started: float | None = None) -> int:
+    """Run one command; ``started`` is the ``time.monotonic()`` its time budget counts from (default: now)."""
+    started = time.monotonic() if started is None else started
     args = build_parser().parse_args(argv)
+    args.started = started
     if args.command == "phantom":
         args.kind = args.baseline_kind if args.kind == "baseline" else args.kind
     from ._lpips import WeightsIntegrityError, WeightsMissingError

@@ -33,6 +33,8 @@ Writes, in ``--out``:
 - ``bench.json``: all of it;
 - ``score_vs_time.png``: per scan, the best exact score against wall time
   of each run, from the traces;
+- ``exact_share_vs_time.png``: per scan, the share of pixels off their
+  aimed level after each stage-1 step against stage 1's seconds;
 - ``comparison.md``: per run the score, seconds, iterations and what ended
   stage 3; with several ``--schedules``, each one's score difference and
   time ratio to the first, its global score and median seconds; the
@@ -111,7 +113,8 @@ def development_set(out: Path, skin: int, plain: int = 0) -> dict[str, Path]:
 #: override). ``default`` is invert's default (the linear regime);
 #: ``physical`` the published pipeline (``--regime physical``);
 #: ``budget-10`` (``-5``, ``-3``) the default with a 10 s (5 s, 3 s) time budget; ``field-300`` and
-#: ``field-75`` the linear regime's first display fit of 300 or 75 steps (150 by default); ``fixed-length`` the
+#: ``field-75`` the linear regime's first display fit of 300 or 75 steps (150 by default); ``no-aim`` the default's
+#: first stage-1 candidate without its aim step (host/field_solve.py); ``fixed-length`` the
 #: default's phases and restarts, each run to its whole length (the schedule
 #: before adaptive stopping); ``stall-rule`` adds the main run's stall rule
 #: with a patience of 2 checkpoints (host/refine.py); ``no-fall-guard`` never
@@ -120,18 +123,21 @@ def development_set(out: Path, skin: int, plain: int = 0) -> dict[str, Path]:
 SCHEDULES = {"default": "", "physical": "regime='physical'", "budget-10": "time_budget_s=10.0",
              "budget-5": "time_budget_s=5.0", "budget-3": "time_budget_s=3.0",
              "field-300": "field_iterations=300", "field-75": "field_iterations=75",
+             "no-aim": "field_schedule='display:150,project:100,hinge:200'",
              "fixed-length": "schedule=RefineSchedule().fixed_length()",
              "stall-rule": "schedule=RefineSchedule(patience=2)", "no-fall-guard": "schedule=RefineSchedule(max_falls=0)"}
 
 
 def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None,
                schedule: str = "default") -> None:
-    """invert() in a child process, so that ru_maxrss is this run's peak."""
+    """invert() in a child process, so that ru_maxrss is this run's peak; its budget runs from the child's start,
+    as ``octcl invert``'s does."""
     code = ("import sys; from octcl.host.invert import invert; from octcl.host.refine import RefineSchedule; "
+            "from octcl.cli import _process_started; "
             "options = dict(time_budget_s=float(sys.argv[4])); "
             f"options.update(dict({SCHEDULES[schedule]})); "
             "invert(sys.argv[1], sys.argv[2], seed=int(sys.argv[5]), report_path=sys.argv[3], "
-            "iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]), **options)")
+            "iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]), started=_process_started(), **options)")
     subprocess.run([sys.executable, "-c", code, str(target), str(output), str(report), str(budget), str(seed),
                     str(iterations)], check=True)
 
@@ -231,6 +237,7 @@ def main(argv=None) -> int:
                              "writable_share": ceiling["writable_share"], "avoidable_share": report["avoidable_share"],
                              "nearest_score": ceiling["nearest_score"], "diffused_score": ceiling["diffused_score"],
                              "seconds": report["seconds"]["total"], "wall_s": wall,
+                             "written_s": report["seconds"]["written"],
                              **{f"seconds_to_{label}": value for label, value in reached.items()},
                              "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
                 print(f"{run}: {components['mean']:.6f} (stages 1-2: {report['initial_score']:.6f}), "
@@ -257,7 +264,7 @@ def main(argv=None) -> int:
         json.dump(summary, handle, indent=1)
     columns = ["scan", "schedule", "seed", *COMPONENTS, "mean", "initial_score", "iterations", "field_iterations",
                "stop_reason", "falls", "reproducible", "exact_share", "writable_share", "avoidable_share",
-               "nearest_score", "diffused_score", "seconds", "wall_s", *[key for key in next(iter(rows.values())) if
+               "nearest_score", "diffused_score", "seconds", "wall_s", "written_s", *[key for key in next(iter(rows.values())) if
                                                      key.startswith("seconds_to_")],
                "peak_memory_mib", "load_average"]
     write_csv(args.out / "bench.csv", columns, rows.values())
@@ -303,8 +310,11 @@ def write_summary(out: Path) -> str:
         for seed in sorted({row["seed"] for row in of}):
             runs = [row for row in of if row["seed"] == seed]
             lines.append(f"\n{schedule}, seed {seed}: global score {global_score(runs)[1]:.6f}, median "
-                         f"{float(np.median([row['seconds'] for row in runs])):.0f} s, total "
-                         f"{sum(row['seconds'] for row in runs):.0f} s over {len(runs)} scans")
+                         f"{float(np.median([row['seconds'] for row in runs])):.1f} s inside invert, "
+                         f"{float(np.median([row['wall_s'] for row in runs])):.1f} s of process wall time "
+                         f"(max {max(row['wall_s'] for row in runs):.1f} s); phantom written "
+                         f"{max(row['written_s'] for row in runs):.2f} s after the process started at most; "
+                         f"total {sum(row['seconds'] for row in runs):.0f} s over {len(runs)} scans")
     labels = [key[len("seconds_to_"):] for key in next(iter(rows.values())) if key.startswith("seconds_to_")]
     lines += ["", "Seconds from the start of the run until the best exact score reached:", "",
               "| run | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
@@ -343,6 +353,8 @@ def write_summary(out: Path) -> str:
         handle.write(text)
     with atomic_write(out / "score_vs_time.png") as handle:
         handle.write(comparison_plot(rows, reports, schedules))
+    with atomic_write(out / "exact_share_vs_time.png") as handle:
+        handle.write(exact_share_plot(rows, reports, schedules))
     return text
 
 
@@ -380,8 +392,25 @@ def comparison_plot(rows: dict, reports: dict, schedules: list[str]) -> bytes:
     return panels_png(panels, "best exact score", columns=4, panel_size=(3.6, 2.8), markersize=3)
 
 
+def exact_share_plot(rows: dict, reports: dict, schedules: list[str]) -> bytes:
+    """PNG: per scan, the share of pixels off their aimed level after each stage-1 step, against the seconds
+    of stage 1 (the report's ``field_candidates``: each step's record), one line per run; the aim step's
+    points are where the aim itself moved."""
+    panels = {}
+    for run, row in rows.items():
+        seconds, off = [0.0], [1.0]
+        for candidate in reports[run]["settings"].get("field_candidates") or []:
+            for step in candidate.get("steps", []):
+                seconds.append(seconds[-1] + step["seconds"])
+                off.append(max(1.0 - step["identical"], 1e-7) if step["kept"] else off[-1])
+        panels.setdefault(row["scan"], []).append((seconds, off, f"{row.get('schedule', schedules[0])}, "
+                                                                 f"seed {row['seed']}"))
+    return panels_png(panels, "share off its aimed level (1e-7: none)", columns=4, panel_size=(3.6, 2.8),
+                      markersize=4, log_y=True)
+
+
 def panels_png(panels: dict[str, list[tuple]], y_label: str, columns: int, panel_size: tuple[float, float],
-               markersize: float) -> bytes:
+               markersize: float, log_y: bool = False) -> bytes:
     """PNG of a grid of panels, ``columns`` wide: per title, lines of (seconds, values, label)."""
     import matplotlib
 
@@ -395,7 +424,7 @@ def panels_png(panels: dict[str, list[tuple]], y_label: str, columns: int, panel
     for panel, (title, lines) in zip(axes, panels.items()):
         for seconds, values, label in lines:
             panel.plot(seconds, values, marker=".", markersize=markersize, label=label)
-        panel.set(title=title, xlabel="seconds", ylabel=y_label)
+        panel.set(title=title, xlabel="seconds", ylabel=y_label, yscale="log" if log_y else "linear")
         panel.grid(alpha=0.3)
         panel.legend(fontsize=7)
     for panel in axes[len(panels):]:
