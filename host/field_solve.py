@@ -23,10 +23,11 @@ regularised inverse of the de-logged target with zero phase):
   pixels of the aim to their other side where the exact score gains and a
   short hinge fit can follow; from a field at its aim, which it keeps there.
 
-Rules the loop keeps: a field step that leaves fewer pixels at their aimed
-level than the best field so far is undone (the field goes back; its record
-says ``kept: False``), and while every pixel is at its aimed level the
-field steps are skipped. Under a time budget each
+Rules the loop keeps: the result is the best field any step left
+(:attr:`FieldSolve.best_field`; a step that leaves fewer pixels at their
+aimed level than it does not replace it, its record says ``kept: False``),
+each step goes on from the field the last one left, and while every pixel
+is at its aimed level the field steps are skipped. Under a time budget each
 step gets its ``share`` of the time left when it starts (the last all of
 it): display 1/2, project :data:`PROJECTION_SHARE` of the rest, hinge the
 rest.
@@ -179,6 +180,14 @@ class FieldSolve:
     score : callable, optional
         ``score(levels) -> float``, the exact score against the target: the
         ``aim`` step's judge (:class:`octcl.host.aim.AimSearch`).
+
+    Attributes
+    ----------
+    field, identical
+        The field the last step left, and its share of pixels at their aimed level.
+    best_field, best_identical
+        The field with the highest share so far (since the aim last moved): the solve's result.
+    history : list of StepRecord
     """
 
     levels: np.ndarray
@@ -188,6 +197,8 @@ class FieldSolve:
     score: object = None
     field: np.ndarray | None = None
     identical: float = 0.0
+    best_field: np.ndarray | None = None
+    best_identical: float = 0.0
     history: list = dataclasses.field(default_factory=list)
     aim_search: object = None
 
@@ -221,14 +232,16 @@ class FieldSolve:
                     progress(offset + min(taken, planned), schedule.iterations)
 
             began = time.perf_counter()
-            candidate, taken, clock_steps = STEPS[step.name](self, step.iterations, budget, step_progress)
-            identical = self.share_at_aim(candidate)
-            # A field step that leaves fewer pixels at their level is undone; the aim step moves the aim itself.
-            kept = self.field is None or identical >= self.identical or step.name == "aim"
+            self.field, taken, clock_steps = STEPS[step.name](self, step.iterations, budget, step_progress)
+            self.identical = self.share_at_aim(self.field)
+            # The best field is kept apart: a step that leaves fewer pixels at their level than it does not
+            # replace it, though the next step goes on from where this one ended (projections cut short by
+            # the clock pass through fewer pixels on their way to more). The aim step changes what counts.
+            kept = self.best_field is None or self.identical >= self.best_identical or step.name == "aim"
             if kept:
-                self.field, self.identical = candidate, identical
-            self.history.append(StepRecord(step.name, taken, identical, time.perf_counter() - began, clock_steps,
-                                           kept))
+                self.best_field, self.best_identical = self.field, self.identical
+            self.history.append(StepRecord(step.name, taken, self.identical, time.perf_counter() - began,
+                                           clock_steps, kept))
             done += step.iterations
         return self
 
@@ -280,8 +293,9 @@ def _aim_step(solve: FieldSolve, rounds: int, budget_s, progress):
     if solve.aim_search is None:
         solve.aim_search = AimSearch(solve.levels, solve.score)
     search, start, taken, clock_steps = solve.aim_search, time.perf_counter(), 0, 0
-    if search.done or solve.identical < 1.0:  # nothing to move, or a field not yet at its aim to start from
+    if search.done or solve.best_identical < 1.0:  # nothing to move, or no field at its aim to start from
         return solve.field, 0, 0
+    solve.field = solve.best_field
 
     def reach(levels):
         from .linear import fit_levels

@@ -62,7 +62,7 @@ from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from .ceiling import WRITABLE, aimed_levels, measure_ceiling
 from .field import target_levels
 from .refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, check_target_score, refine
-from .target import check_target, read_target, target_scan
+from .target import check_target, read_target, target_scan, target_struct_for_metrics
 
 #: Least time between two checkpoint writes during refinement, in seconds.
 #: Formatting and writing 262,000–295,000 rows takes 0.1–0.4 s
@@ -402,11 +402,25 @@ class _LazyExactScore:
 
     Building it imports torch and loads the LPIPS network (about 2 s on two
     cores); the linear regime writes its first phantom without either, and
-    only a run with several stage-1 candidates scores before stage 3.
+    only a run with several stage-1 candidates scores before stage 3. Levels
+    equal to a grey target's own score 1 on every component without it:
+    the metric then compares identical images (MS-SSIM's terms are x/x
+    with the same rounding on both sides, LPIPS' feature differences are
+    0; ``tests/test_invert.py`` checks :class:`ExactScore` gives exactly
+    that), so a scan the scanner rendered, inverted exactly, needs no torch.
     """
 
-    def __init__(self, target):
+    def __init__(self, target, config: ScannerConfig):
+        from octcl import scorer
+
         self.target, self._score = target, None
+        scan = target_scan(target)
+        self.levels = target_levels(scan, config)
+        # The metric reads the Struct map from the target's pixels and the maps from its scan: both must be
+        # those of its levels for equal levels to mean identical images.
+        self.grey = np.array_equal(target_struct_for_metrics(target), scorer._levels_for_metrics(self.levels)) \
+            and np.array_equal(scan, target_scan(self.levels))
+        self.perfect = {**dict.fromkeys(scorer.COMPONENTS, 1.0), "mean": 1.0}
 
     def built(self):
         if self._score is None:
@@ -416,6 +430,8 @@ class _LazyExactScore:
         return self._score
 
     def __call__(self, levels):
+        if self.grey and np.array_equal(levels, self.levels):
+            return dict(self.perfect)
         return self.built()(levels)
 
 
@@ -668,7 +684,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
 
     try:
         tell("field", 0, 0)
-        exact_score = _LazyExactScore(target)
+        exact_score = _LazyExactScore(target, config)
         first = _STARTS[regime](target_scan(target), config, schedule, field_iterations, field_schedule, field_budget,
                                 threads, seed,
                                 field_step, tell, exact_score)
@@ -686,7 +702,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         ceiling.check_ceiling("before stage 3")
         offset = elapsed()
         result = refine(phantom, target, first.schedule, deadline=None if fixed else deadline - reserve_s,
-                        kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score.built(),
+                        kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score,
                         on_improvement=lambda improved, components: writer.offer(improved),
                         ceiling=ceiling.ceiling if fixed else None, threads=threads,
                         target_score=target_score, aim=first.aim)

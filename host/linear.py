@@ -478,7 +478,7 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedule
         return time.perf_counter() - start
 
     for schedule in schedules:
-        if solves and solves[0].identical == 1.0:
+        if solves and solves[0].best_identical == 1.0:
             break  # every pixel at its aimed level: another candidate would render the same levels
         if solves and time_budget_s is not None and elapsed() + pace * schedule.iterations > time_budget_s:
             clock_steps += 1
@@ -489,7 +489,7 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedule
                   progress=lambda step, steps, offset=done: progress and progress(offset + step, total))
         clock_steps += solve.clock_steps
         done += schedule.iterations
-        candidates.append({"schedule": str(schedule), "score": None, "identical": solve.identical,
+        candidates.append({"schedule": str(schedule), "score": None, "identical": solve.best_identical,
                            "seconds": time.perf_counter() - began,
                            "steps": [dataclasses.asdict(record) for record in solve.history]})
         solves.append(solve)
@@ -500,9 +500,9 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedule
     if len(candidates) > 1:
         operator = FieldOperator(config)
         for candidate, solve in zip(candidates, solves):
-            candidate["score"] = float(score(Rendering.from_a_scans(operator.apply(solve.field)).levels))
+            candidate["score"] = float(score(Rendering.from_a_scans(operator.apply(solve.best_field)).levels))
     chosen = max(range(len(candidates)), key=lambda index: candidates[index]["score"] or 0.0)
-    return LinearStart(field=solves[chosen].field, schedule=schedules[chosen], aim=solves[chosen].aim,
+    return LinearStart(field=solves[chosen].best_field, schedule=schedules[chosen], aim=solves[chosen].aim,
                        candidates=candidates, seconds=elapsed(), clock_steps=clock_steps,
                        threads=solves[0].threads or 1)
 

@@ -113,6 +113,7 @@ schedule take some 310 s idle: 0.99900 → 0.99964 on Scan_Exp2_Layers_A and
 from __future__ import annotations
 
 import math
+import sys
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -276,6 +277,14 @@ class _Clock:
         self.durations[name] = seconds
 
 
+def _set_torch_threads(count: int) -> None:
+    """torch's thread count, where torch is in use: a refinement that ends at its first score of a phantom
+    rendering its target exactly never imports it (:func:`refine`, the caller's ``exact_score``)."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(count)
+
+
 class _FixedThreads:
     """torch's thread count held at ``threads`` for the whole refinement (reproducible runs)."""
 
@@ -283,9 +292,7 @@ class _FixedThreads:
         self.threads = threads
 
     def before_call(self) -> None:
-        import torch
-
-        torch.set_num_threads(self.threads)
+        _set_torch_threads(self.threads)
 
     def after_call(self, kind, seconds: float) -> None:
         pass
@@ -317,11 +324,9 @@ class _ThreadChooser:
         self._trial = False
 
     def before_call(self) -> None:
-        import torch
-
         self._trial = bool(self._plan) or self._retry_at == self._calls
         current = self._plan[0] if self._plan else (self.cores if self._trial else self.threads)
-        torch.set_num_threads(current)
+        _set_torch_threads(current)
         self._current = current
 
     def after_call(self, kind, seconds: float) -> None:
@@ -458,8 +463,10 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     on_improvement : callable, optional
         ``on_improvement(phantom, components)`` whenever the best exact score
         improves on the best so far (the input phantom's at first).
-    exact_score : ExactScore, optional
-        The target's scorer, if already built (the same ``target``).
+    exact_score : callable, optional
+        ``exact_score(levels)`` → the components and their ``mean``:
+        :class:`ExactScore` of the target (the default), or one that
+        builds it at first use (:func:`octcl.host.invert.invert`'s).
     ceiling : float, optional
         ``time.monotonic()`` value past which :class:`TimeBudgetExceeded` is
         raised (checked before every iteration): a safety limit for runs
@@ -497,10 +504,6 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     ValueError
         ``target_score`` outside (0, 1].
     """
-    import torch  # here, not at the top: choosing a schedule (invert, the CLI) must not import it
-
-    from .loss import ExactScore
-
     started = time.monotonic()
     clock = _Clock(deadline, ceiling)
     check_target_score(target_score)
@@ -508,7 +511,10 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         from octcl._scanner_op import ScannerKernels
 
         kernels = ScannerKernels(config)
-    exact_score = exact_score or ExactScore(target)
+    if exact_score is None:
+        from .loss import ExactScore
+
+        exact_score = ExactScore(target)
     x_um, y_um = saved_precision(phantom.x_um), saved_precision(phantom.y_um)
     refiner = _Refiner(x_um, y_um, kernels, target_scan(target), exact_score, schedule, config, clock, threads)
     z_um = np.array(phantom.z_um, dtype=np.float64)
@@ -628,7 +634,8 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
             report(stage)
 
     main_length = sum(p.iterations for p in schedule.phases)
-    previous_threads = torch.get_num_threads()
+    torch = sys.modules.get("torch")  # the caller's thread count, restored where torch was in use before
+    previous_threads = None if torch is None else torch.get_num_threads()
     try:
         refiner.threads.before_call()  # exact scores, the first included, at the loss's thread count
         rendering = refiner.render(z_um, log_energy, for_adjoint=False)
@@ -659,7 +666,8 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
             if schedule.min_gain is not None and not stop_reason and best.score - parent < schedule.min_gain:
                 stop_reason = "converged"
     finally:
-        torch.set_num_threads(previous_threads)
+        if previous_threads is not None:
+            torch.set_num_threads(previous_threads)
 
     return RefineResult(phantom=as_phantom(best.z_um, best.log_energy), components=best.components,
                         initial_components=initial, iterations=iterations, trace=trace,

@@ -14,6 +14,7 @@ import pytest
 from octcl._io import ImageFormatError, write_grey_png
 from octcl.host.invert import invert
 from octcl.host.refine import Phase, RefineSchedule
+from octcl.config import DEFAULT_CONFIG
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.scorer import COMPONENTS
 
@@ -187,19 +188,37 @@ def test_budget_runs_from_the_start_it_is_given(layers_path, tmp_path):
 
 
 def test_the_linear_regime_writes_its_phantom_before_importing_torch(layers_path, tmp_path):
-    """Stages 1–2 of one candidate need neither torch nor the scorer: the first write comes before both (2 s)."""
+    """Stages 1–2 of one candidate need neither torch nor the scorer, and a scan the scanner rendered,
+    inverted exactly, is scored without them: the whole run never imports torch (2 s on two cores)."""
     output = tmp_path / "out.txt"
     code = (
-        "import sys\n"
+        "import sys, json\n"
         "from octcl.host.invert import invert\n"
         "seen = []\n"
         f"def progress(state, output={str(output)!r}):\n"
         "    import os\n"
         "    if state.stage == 'setup' and not seen:\n"
         "        seen.append((os.path.exists(output), 'torch' in sys.modules))\n"
-        f"invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=60, progress=progress)\n"
-        "print(seen[0])\n"
+        f"result = invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=60, progress=progress)\n"
+        "print(json.dumps([seen[0], 'torch' in sys.modules, result.score, result.stop_reason]))\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "(True, False)"  # written, torch not yet imported
+    assert json.loads(done.stdout) == [[True, False], False, 1.0, "ceiling"]
+
+
+def test_levels_equal_to_a_grey_target_score_exactly_one_as_the_scorer_computes_it(layers_path):
+    """The shortcut of invert's lazy scorer: ExactScore itself gives 1.0 on every component for them."""
+    from octcl.host.field import target_levels
+    from octcl.host.invert import _LazyExactScore
+    from octcl.host.loss import ExactScore
+    from octcl.host.target import read_target, target_scan
+
+    target = read_target(layers_path)
+    levels = target_levels(target_scan(target))
+    lazy = _LazyExactScore(target, DEFAULT_CONFIG)
+    assert lazy.grey and lazy(levels) == ExactScore(target)(levels) == {**dict.fromkeys(COMPONENTS, 1.0), "mean": 1.0}
+    assert lazy._score is None  # the shortcut built nothing
+    other = levels.copy()
+    other[0, 0] ^= 1
+    assert lazy(other)["mean"] < 1.0 and lazy._score is not None
