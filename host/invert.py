@@ -9,9 +9,11 @@
 
 Stages 1–2 come in two regimes (:data:`REGIMES`):
 
-- ``linear`` (the default), :mod:`octcl.host.linear`: two short display
-  fits, each followed by projections onto the target's level intervals and
-  judged by the exact score, find the field in about 8 s, and an exact
+- ``linear`` (the default), :mod:`octcl.host.linear`: a schedule of named
+  steps (:mod:`octcl.host.field_solve`: a display fit, projections onto the
+  target's level intervals, a hinge fit and, where the target has levels
+  the scanner cannot write, the aim step) finds the field in 4–5 s on two
+  cores (a second candidate only where the first falls short), and an exact
   decode puts two rows in every cell at energies so small (E ≲ 1e−10 %)
   that shadowing changes no display level. The phantom is a numerical device:
   it renders as the target, but its energies are not tissue-like.
@@ -92,9 +94,10 @@ MIN_FIELD_BUDGET_S = 0.2
 #: half as many (:func:`octcl.host.linear.linear_start`). Linear: with the
 #: hinge fit (:func:`octcl.host.linear.fit_levels`) after the projections,
 #: 300, 150 and 75 steps all put every pixel of the nine development scans
-#: at its aimed level with the same scores; inside ``invert`` 150 took 7.1 s
-#: in the median and 7.9 s at most, 300 7.8 s (9.6 s), 75 6.3 s (11.7 s:
-#: its hinge fit needed 4–5 s more on two scans). docs/benchmarks.md.
+#: at its aimed level with the same scores (0.5.0, docs/benchmarks.md);
+#: with 0.6.0's faster hinge fit and the aim step, 75 steps took 5.1 s of
+#: median wall time against 150's 6.1 s, scored 9.5e−7 less on orange and
+#: took 1–2 s more on the two plain skins (docs/benchmarks.md, 0.6.0).
 FIELD_ITERATIONS = {"physical": 1500, "linear": 150}
 #: Stage 3's schedule in the linear regime: short steps while they gain.
 #: From a linear start the physical regime's schedule fell at once (its

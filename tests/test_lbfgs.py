@@ -1,7 +1,6 @@
 """L-BFGS on one array (host/lbfgs.py)."""
 
 import numpy as np
-import pytest
 
 from octcl.host.lbfgs import minimise
 
