@@ -28,9 +28,16 @@ sequential), and the global score (mean of the 8 per-component medians).
 Results go to ``--out``: ``bench_batch.json``, ``bench_batch.csv`` and
 ``bench_batch.png`` (scans per hour and CPU use per mode).
 
-Example (about 15 minutes on two idle cores)::
+With ``--deadline`` each scan runs as ``octcl invert``'s default does (the
+time budget decides, no fixed schedule), and with ``--plain`` the targets
+are the renderings quantised plainly (floor(256·D)), with the unwritable
+levels real scans have.
+
+Examples (about 15 minutes, and 1 and 2 minutes, on two idle cores)::
 
     python scripts/bench_batch.py --scans 4 --iterations 20 --field-iterations 600 --out bench_batch
+    python scripts/bench_batch.py --scans 20 --deadline --modes local:2x1 --out bench_batch_default
+    python scripts/bench_batch.py --scans 20 --deadline --plain --modes local:2x1 --out bench_batch_plain
 """
 
 from __future__ import annotations
@@ -58,12 +65,16 @@ from octcl.render import render
 DASK = str(Path(sys.executable).with_name("dask"))
 
 
-def make_targets(folder: Path, count: int) -> None:
+def make_targets(folder: Path, count: int, plain: bool = False) -> None:
+    """``skin_N.npy``, the scanner's levels of ``Phantom.skin(N)``; ``plain``: its display quantised plainly,
+    floor(256·D), with the unwritable levels a real scan has (``host/ceiling.py``)."""
     folder.mkdir(parents=True, exist_ok=True)
     for seed in range(count):
-        path = folder / f"skin_{seed}.npy"
+        path = folder / f"{'plain_' if plain else ''}skin_{seed}.npy"
         if not path.exists():
-            np.save(path, render(Phantom.skin(seed)).levels)
+            rendering = render(Phantom.skin(seed))
+            np.save(path, np.minimum(np.floor(256 * rendering.display), 255).astype(np.uint8) if plain
+                    else rendering.levels)
 
 
 def sequential_child(targets: Path, out: Path, budget: float, seed: int, schedule: dict) -> None:
@@ -202,15 +213,20 @@ def main(argv=None) -> int:
                         default=["sequential", "local:1x2", "local:2x1", "cluster:2x1", "stock:2x1"],
                         help="sequential, local:WxT, cluster:WxT, stock:WxT (default: all five on two cores)")
     parser.add_argument("--out", type=Path, default=Path("bench_batch"))
+    parser.add_argument("--deadline", action="store_true",
+                        help="each scan as octcl invert's default runs it (deadline mode, the time budget): "
+                             "no fixed schedule, --iterations and --field-iterations ignored")
+    parser.add_argument("--plain", action="store_true",
+                        help="targets quantised plainly, with unwritable levels as real scans have them")
     args = parser.parse_args(argv)
 
-    targets = args.out / "targets"
-    make_targets(targets, args.scans)
+    targets = args.out / ("plain_targets" if args.plain else "targets")
+    make_targets(targets, args.scans, args.plain)
     cores = _available_cores()
     results = []
     for mode in args.modes:
         load = os.getloadavg()[0]
-        schedule = {"iterations": args.iterations, "field_iterations": args.field_iterations}
+        schedule = {} if args.deadline else {"iterations": args.iterations, "field_iterations": args.field_iterations}
         result = measure(mode, run_mode(mode, targets, args.out / mode.replace(":", "_"), args.time_budget,
                                         args.seed, schedule, cores), cores)
         result["load_average_before"] = load
@@ -222,7 +238,8 @@ def main(argv=None) -> int:
     for result in results:
         result["score_difference"] = result["score"] - baseline
     meta = {"command": " ".join(["python", "scripts/bench_batch.py", *argv]), "cores": cores,
-            "scans": args.scans, "iterations": args.iterations, "field_iterations": args.field_iterations,
+            "scans": args.scans, "iterations": None if args.deadline else args.iterations,
+            "field_iterations": None if args.deadline else args.field_iterations, "plain": args.plain,
             "time_budget_s": args.time_budget, "seed": args.seed}
     with atomic_write(args.out / "bench_batch.json", "w") as handle:
         json.dump({**meta, "results": results}, handle, indent=1)
@@ -235,8 +252,9 @@ def main(argv=None) -> int:
         writer.writerow([result[c] for c in columns])
     with atomic_write(args.out / "bench_batch.csv", "w") as handle:
         handle.write(buffer.getvalue())
+    what = "the default schedule" if args.deadline else f"{args.field_iterations} + {args.iterations} iterations"
     plot(args.out / "bench_batch.png", results,
-         f"{args.scans} scans, {args.field_iterations} + {args.iterations} iterations, {cores} cores")
+         f"{args.scans} {'plain ' if args.plain else ''}scans, {what}, {cores} cores")
     return 0
 
 
