@@ -17,12 +17,14 @@ scale. ``tests/test_linear.py`` renders decoded phantoms with the float64
 reference scanner, shadowing included, and compares the levels with those
 of the field.
 
-Stage 1, :func:`linear_start`: display fits (the physical regime's stage
-1, shortened), each followed by :func:`retrieve_field` and :func:`fit_levels`,
-the best kept; once one renders every pixel at its aimed level, the others
-are left out. The aimed levels are the target's own where the scanner can
-write them, one level up or down by error diffusion where it cannot
-(:mod:`octcl.host.ceiling`).
+Stage 1, :func:`linear_start`: candidate schedules of named steps
+(:mod:`octcl.host.field_solve`): a display fit (the physical regime's stage
+1, shortened), :func:`retrieve_field`'s projections, :func:`fit_levels`'
+hinge fit and the aim step; the best kept; once one renders every pixel at
+its aimed level, the others are left out. The aimed levels are the
+target's own where the scanner can write them, one level up or down where
+it cannot: by error diffusion (:mod:`octcl.host.ceiling`), then moved
+where the exact score gains (:mod:`octcl.host.aim`).
 
 Projections, :func:`retrieve_field`. In this regime the scanner is the linear
 operator A = H·F of :class:`octcl.host.field.FieldOperator` (a lateral
@@ -124,7 +126,7 @@ INTERVAL_MARGIN = 0.1
 #: Updates of the placed field in :func:`decode_exact`.
 DECODE_CORRECTIONS = 12
 #: Display-fit lengths of :func:`linear_start`'s candidates, as multiples of its
-#: ``adam_steps``. A third at 2× won on one scan of seven by 8e−6 and cost
+#: first display fit's steps. A third at 2× won on one scan of seven by 8e−6 and cost
 #: about 5 s (:func:`linear_start`).
 START_LENGTHS = (1.0, 0.5)
 #: Projection steps after each display fit in :func:`linear_start`.
