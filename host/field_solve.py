@@ -43,7 +43,7 @@ import numpy as np
 
 from ..config import DEFAULT_CONFIG, ScannerConfig
 from ..render import Rendering
-from .field import FieldOperator, target_magnitude
+from .field import FieldOperator
 
 #: Under a time budget, the projections' share of what the display fit before them leaves (the hinge fit
 #: gets the rest). With ``--time-budget 3`` (Uniform B, skin_0, orange in one process) 1/3, 1/2 and 0.7
@@ -204,8 +204,9 @@ class FieldSolve:
 
     def start_field(self) -> np.ndarray:
         """The field before any step: the regularised inverse of the de-logged target, zero phase."""
-        operator = FieldOperator(self.config, self.threads or 1)
-        return operator.pseudo_inverse(target_magnitude(self.levels).astype(np.complex128))
+        from .linear import regularised_start
+
+        return regularised_start(self.levels, FieldOperator(self.config, self.threads or 1))
 
     def share_at_aim(self, field_now: np.ndarray) -> float:
         """Share of pixels the field renders at their aimed level."""

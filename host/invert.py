@@ -339,7 +339,6 @@ class _CheckpointWriter:
         self.writes, self.seconds = 0, 0.0
         self.last_write = None  # time.monotonic() when the last write ended
         self._pending, self._closed, self._error = None, False, None
-        self._last_write = -math.inf
         self._condition = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="checkpoint-writer", daemon=True)
         self._thread.start()
@@ -359,7 +358,8 @@ class _CheckpointWriter:
                             return
                         self._condition.wait()
                         continue
-                    wait_s = self._last_write + self.interval_s - time.monotonic()
+                    wait_s = 0.0 if self.last_write is None else \
+                        self.last_write + self.interval_s - time.monotonic()
                     if wait_s <= 0 or self._closed:
                         break
                     self._condition.wait(wait_s)
@@ -375,8 +375,8 @@ class _CheckpointWriter:
         start = time.monotonic()
         phantom.validate(self.config, y_limit_um=CONTRACT_Y_LIMIT_UM, source=str(self.path))
         phantom.save(self.path)
-        self._last_write = self.last_write = time.monotonic()
-        self.seconds += self._last_write - start
+        self.last_write = time.monotonic()
+        self.seconds += self.last_write - start
         self.writes += 1
 
     def write_now(self, phantom: Phantom) -> None:
@@ -565,8 +565,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         does nothing after the deadline. Without ``iterations``
         (deadline mode) stage 1 gets min(8 % of it, 45 s), stage 2 runs
         once and stage 3 gets the rest, so how far each stage gets depends
-        on the machine's speed and load (linear regime: stage 1 gets up to
-        half of it). With ``iterations`` it is only a
+        on the machine's speed and load (linear regime: stage 1 gets all of
+        it but what has gone and :data:`LINEAR_WRITE_RESERVE_S`,
+        :func:`field_budget_s`). With ``iterations`` it is only a
         ceiling: :class:`TimeBudgetExceeded` if the fixed schedule has not
         ended when stage 3 would have to stop.
     seed : int
@@ -729,7 +730,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     # After the last write, so that it takes nothing from the budget: the ceiling of the target (up to two
     # exact scores, none for a target the scanner could have written) and where the phantom stands under it
     # (the levels its score was computed from).
-    levels = target_levels(target_scan(target), config)
+    levels = exact_score.levels
     ceiling = measure_ceiling(levels, lambda image: exact_score(image)["mean"])
     rendered = result.levels
 

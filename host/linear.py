@@ -250,7 +250,7 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
     aimed = levels if aim is None else target_levels(aim, config)
     lower, upper = level_magnitude_bounds(aimed)
     if initial is None:
-        initial = operator.pseudo_inverse(target_magnitude(levels).astype(np.complex128))
+        initial = regularised_start(levels, operator)
     field = np.asarray(initial, dtype=np.complex128) / np.abs(operator.apply(initial)).max()
     previous = field
     taken = clock_steps = 0
@@ -265,6 +265,12 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
         if progress is not None:
             progress(taken, iterations)
     return _normalised_fit(operator, field, aimed, taken, time.perf_counter() - start, clock_steps)
+
+
+def regularised_start(levels: np.ndarray, operator: FieldOperator) -> np.ndarray:
+    """The start of the projections without a given one: the regularised inverse
+    (:meth:`~octcl.host.field.FieldOperator.pseudo_inverse`) of the de-logged target, zero phase."""
+    return operator.pseudo_inverse(target_magnitude(levels).astype(np.complex128))
 
 
 def _project(a_scans: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -354,8 +360,10 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
     aim = target_levels(aim, config)
     operator = FieldOperator(config, workers)
     field = np.asarray(field, dtype=np.complex128)
-    field = field / np.abs(operator.apply(field)).max()
-    lower, upper = _anchored_bounds(aim, np.abs(operator.apply(field)), margin)
+    magnitude = np.abs(operator.apply(field))
+    scale = magnitude.max()
+    field = field / scale
+    lower, upper = _anchored_bounds(aim, magnitude / scale, margin)
 
     def loss_and_gradient(field_now):  # the gradient as ∂/∂Re F + i·∂/∂Im F: Hᴴ·r
         a_scans = operator.apply(field_now)

@@ -127,10 +127,10 @@ from octcl.render import Rendering, display_vjp
 from .adam import Adam
 from .field import _available_cores
 from .schedule import FALL_LR_FACTOR, MAX_ENERGY_PCT, STOP_RULES, Phase, RefineSchedule
+from .target import target_scan
 
 if TYPE_CHECKING:
     from .loss import DisplayLoss, ExactScore
-from .target import target_scan
 
 
 
