@@ -3,8 +3,10 @@
 Stage 1's display fit and stage 3's refinement both step with it. It is
 written here rather than taken from ``torch.optim``: those steps run on
 NumPy arrays (and, on a device, in kernels), and constructing a
-``torch.optim`` optimiser imports ``torch._dynamo``, 1.6 s of a command's
-start on two cores (``python -X importtime``), for ten lines of arithmetic.
+``torch.optim`` optimiser imports ``torch._dynamo``: ``python -c "import
+torch; torch.optim.Adam([torch.zeros(1, requires_grad=True)])"`` takes
+3.0 s on two cores of an AMD EPYC against 1.2 s for ``import torch``, for
+ten lines of arithmetic.
 """
 
 from __future__ import annotations

@@ -518,7 +518,9 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
 
     The loss's gradient is derived by hand (:func:`display_loss`) and the
     step is :class:`octcl.host.adam.Adam`: no torch, whose import and
-    optimiser took 3.3 s of a 7–9 s command on two cores.
+    first optimiser (``python -c "import torch;
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])"``) take 3.0 s on
+    two cores of an AMD EPYC, ``import torch`` alone 1.2 s.
 
     Parameters
     ----------
@@ -542,9 +544,9 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
         core, uses 1.
     dtype : numpy.float32 or numpy.float64
         Precision of the fit (complex64 or complex128 FFTs). float32 took
-        21 ms a step against 23 ms for float64 on two cores of an AMD EPYC
-        (50 steps on Uniform A, one FFT thread), with the loss the same
-        to 1e−5 after 50 steps.
+        15.2 ms a step against 18.1 ms for float64 on Uniform A
+        (``python scripts/bench_field_steps.py --threads 1``,
+        two cores of an AMD EPYC).
     progress : callable, optional
         Called as ``progress(iteration, iterations, loss)`` after each step.
 

@@ -160,7 +160,7 @@ class StepRecord:
     identical: float   # share of pixels at their aimed level after it
     seconds: float
     clock_steps: int   # 1 where the time budget cut it short
-    kept: bool         # False: it lost pixels and was undone
+    kept: bool         # False: fewer pixels at their aim than the best field, which stays the result
 
 
 @dataclass

@@ -295,8 +295,9 @@ def _normalised_fit(operator: FieldOperator, field: np.ndarray, aimed: np.ndarra
 #: L-BFGS iterations of :func:`fit_levels`.
 LEVEL_FIT_ITERATIONS = 200
 #: Pairs L-BFGS keeps (:func:`octcl.host.lbfgs.minimise`'s ``memory``; SciPy's default). From the same
-#: projected fields, 5, 10 and 20 pairs all put every pixel of Uniform A and B at its level, in 20 and 30
-#: iterations, taking 0.54/0.64/0.71 s and 0.43/0.50/0.60 s (two cores, AMD EPYC).
+#: projected field of Uniform A, 5, 10 and 20 pairs all put every pixel at its level in 20 iterations,
+#: taking 0.31, 0.52 and 0.66 s (``python scripts/bench_field_steps.py --threads 1``, two cores of an AMD
+#: EPYC); 5 is not yet measured on the development set.
 LEVEL_FIT_MEMORY = 10
 #: :func:`fit_levels` compares the rendering's levels with the aimed ones every this many iterations.
 LEVEL_CHECK_EVERY = 10

@@ -432,7 +432,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--field-schedule", metavar="STEPS",
                    help="the linear regime's stage 1 as named steps, in order, each NAME:ITERATIONS: display "
                         "(Adam on the display), project (projections onto the levels), hinge (L-BFGS onto the "
-                        "levels); e.g. display:150,project:100,hinge:200 (the default's first candidate)")
+                        "levels), aim (rounds choosing the sides of unwritable levels for the score); the "
+                        "default's first candidate is display:150,project:100,hinge:200,aim:4")
     p.add_argument("--threads", type=int, metavar="T",
                    help="CPU threads for the whole run (default with --iterations: 1; without: chosen "
                         "by timing)")
