@@ -57,8 +57,8 @@ DEFAULT_SHARES = {"display": 0.5, "project": PROJECTION_SHARE, "hinge": 1.0, "ai
 AIM_FIRST_ROUND_S = 2.5
 #: Rounds of the default schedules' aim step (:func:`default_schedules`).
 DEFAULT_AIM_ROUNDS = 4
-#: Hinge iterations at most for the field to follow a move of the aim step (a few pixels, two levels each):
-#: 10–80 on orange.png.
+#: Hinge iterations at most for the field to follow a move of the aim step (a few pixels, two levels each;
+#: it stops once every pixel is at its new level).
 AIM_HINGE_ITERATIONS = 100
 
 
