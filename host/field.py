@@ -218,14 +218,22 @@ class FieldOperator:
     workers : int
         Threads of the FFTs (``scipy.fft``'s ``workers``). Each 1-D transform
         is one thread's, so the result has the same bits at any count.
+
+    ``padded_columns`` sets P (≥ Nx + 2R); by default the first fast FFT
+    length. It changes only :meth:`pseudo_inverse` (the circulant extension
+    it inverts): the OpenCL op (:mod:`octcl.host.field_kernels`) pads to a
+    power of two and is tested against this class at its P.
     """
 
-    def __init__(self, config: ScannerConfig = DEFAULT_CONFIG, workers: int = 1):
+    def __init__(self, config: ScannerConfig = DEFAULT_CONFIG, workers: int = 1, padded_columns: int | None = None):
         self.config = config
         self.cell_depth_um = cell_depths_um(config)
         self.taps = lateral_taps(config)
         reach = self.taps.size // 2
-        self.padded_columns = scipy.fft.next_fast_len(config.a_scans + 2 * reach)
+        smallest = config.a_scans + 2 * reach
+        if padded_columns is not None and padded_columns < smallest:
+            raise ValueError(f"padded_columns must be ≥ Nx + 2R = {smallest}, got {padded_columns}")
+        self.padded_columns = scipy.fft.next_fast_len(smallest) if padded_columns is None else padded_columns
         kernel = np.zeros(self.padded_columns)
         kernel[np.arange(-reach, reach + 1)] = self.taps  # offset d at column d mod P
         window = ref.hann_window(config.depth_pixels)
@@ -266,11 +274,15 @@ class FieldOperator:
         """
         nz, nx = self.config.shape
         spectrum = scipy.fft.fft2(a_scans, s=(nz, self.padded_columns), workers=self.workers)
+        return scipy.fft.ifft2(spectrum * self.inverse_transfer(regularisation), workers=self.workers)[:, :nx]
+
+    def inverse_transfer(self, regularisation: float = REGULARISATION) -> np.ndarray:
+        """conj(H)/(|H|² + λ), λ = ``regularisation``·max|H|²: :meth:`pseudo_inverse`'s product, (Nz, P)."""
         inverse = self._inverses.get(regularisation)
         if inverse is None:
             damping = regularisation * np.max(np.abs(self.transfer)) ** 2
             inverse = self._inverses[regularisation] = np.conj(self.transfer) / (np.abs(self.transfer) ** 2 + damping)
-        return scipy.fft.ifft2(spectrum * inverse, workers=self.workers)[:, :nx]
+        return inverse
 
 
 # --------------------------------------------------------------------- fit
