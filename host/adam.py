@@ -32,7 +32,10 @@ class Adam:
         Of the moments (the parameters' own).
     """
 
-    def __init__(self, shapes, beta1: float = 0.9, beta2: float = 0.999, epsilon: float = 1e-8,
+    #: (β1, β2, ε) of the paper, the defaults (``kernels/adam.cl`` is built with them).
+    DEFAULTS = (0.9, 0.999, 1e-8)
+
+    def __init__(self, shapes, beta1: float = DEFAULTS[0], beta2: float = DEFAULTS[1], epsilon: float = DEFAULTS[2],
                  dtype=np.float64):
         self.beta1, self.beta2, self.epsilon = beta1, beta2, epsilon
         self.first = [np.zeros(shape, dtype=dtype) for shape in shapes]

@@ -471,7 +471,7 @@ def _thread_trials(threads: int | None, iterations: int) -> list[int]:
 def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 1500,
               time_budget_s: float | None = 40.0, energy_weight: float = ENERGY_WEIGHT,
               threads: int | None = None, dtype=np.float32,
-              progress=None, initial: np.ndarray | None = None) -> FieldFit:
+              progress=None, initial: np.ndarray | None = None, kernels=None) -> FieldFit:
     """Fit the complex field F of the linear scanner to a target B-scan (stage 1).
 
     Minimises, with Adam (Kingma & Ba 2015; step 0.05, cosine annealing),
@@ -560,7 +560,15 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
         (``python scripts/bench_field_steps.py --threads 1``,
         two cores of an AMD EPYC).
     progress : callable, optional
-        Called as ``progress(iteration, iterations, loss)`` after each step.
+        Called as ``progress(iteration, iterations, loss)`` after each step
+        (on a device, for the steps since the last read, every few steps).
+    initial : ndarray of complex, (Nz, Nx), optional
+        The start; default the regularised inverse above.
+    kernels : FieldKernels, optional
+        Run the steps as OpenCL kernels on its device
+        (:class:`octcl.host.display_kernels.DisplayFitKernels`), in its
+        precision (``dtype`` is then the kernels'); ``threads`` then serves
+        the host's FFTs of the start and the result only.
 
     Returns
     -------
@@ -573,6 +581,8 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
         raise ValueError(f"dtype must be numpy.float32 or numpy.float64, got {dtype}")
     levels = target_levels(target, config)
     operator = FieldOperator(config, workers=threads or 1)
+    if kernels is not None:
+        dtype = kernels.real
     goal = DisplayGoal.of(levels, energy_weight, dtype)
     if initial is None:
         initial = operator.pseudo_inverse(target_magnitude(levels))
@@ -581,30 +591,57 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
     floor = 1e-12 * magnitude.max()  # ln|F| of an exactly cancelled cell
     log_magnitude = np.log(np.maximum(magnitude, floor)).astype(dtype)
     phase = np.angle(initial).astype(dtype)
-    adam = Adam((log_magnitude.shape, phase.shape), dtype=dtype)
-    losses, clock_steps = [], 0
+    schedule = _CosineSchedule(iterations, time_budget_s, start)
+    if kernels is None:
+        log_magnitude, phase, losses = _fit_on_host(operator, goal, log_magnitude, phase, schedule, threads, progress)
+    else:
+        log_magnitude, phase, losses = _fit_on_device(kernels, goal, log_magnitude, phase, schedule, progress)
 
-    def time_fraction() -> float:
-        return 0.0 if time_budget_s is None else (time.perf_counter() - start) / time_budget_s
+    field = np.exp(log_magnitude.astype(np.float64)) * np.exp(1j * phase.astype(np.float64))
+    a_scans = operator.apply(field)
+    field /= np.abs(a_scans).max()
+    display = Rendering.from_a_scans(a_scans).display
+    return FieldFit(field=field, display=display, target_display=goal.display.astype(np.float64),
+                    losses=np.asarray(losses, dtype=np.float64), iterations=len(losses),
+                    seconds=time.perf_counter() - start, threads=operator.workers, clock_steps=schedule.clock_steps)
 
-    def learning_rate() -> float:
-        """lr₀·½(1 + cos πτ), τ the larger of the steps' share and the clock's (docstring)."""
-        nonlocal clock_steps
-        clock = (time_fraction() - CLOCK_MARGIN) / (1.0 - CLOCK_MARGIN)
-        clock_steps += clock > len(losses) / iterations
-        fraction = min(1.0, max(len(losses) / iterations, clock))
+
+class _CosineSchedule:
+    """The display fit's learning rate lr₀·½(1 + cos πτ), τ the larger of the steps' share and the clock's
+    (:func:`fit_field`), and whether the fit may take another step."""
+
+    def __init__(self, iterations: int, time_budget_s: float | None, start: float):
+        self.iterations, self.time_budget_s, self.start = iterations, time_budget_s, start
+        self.clock_steps = 0
+
+    def time_fraction(self) -> float:
+        return 0.0 if self.time_budget_s is None else (time.perf_counter() - self.start) / self.time_budget_s
+
+    def go_on(self, taken: int) -> bool:
+        return taken < self.iterations and self.time_fraction() < 1.0
+
+    def rate(self, taken: int) -> float:
+        clock = (self.time_fraction() - CLOCK_MARGIN) / (1.0 - CLOCK_MARGIN)
+        self.clock_steps += clock > taken / self.iterations
+        fraction = min(1.0, max(taken / self.iterations, clock))
         return LEARNING_RATE * 0.5 * (1.0 + math.cos(math.pi * fraction))
 
-    trials = _thread_trials(threads, iterations)
+
+def _fit_on_host(operator: FieldOperator, goal: DisplayGoal, log_magnitude, phase, schedule: _CosineSchedule,
+                 threads: int | None, progress):
+    """The display fit's steps in NumPy (:func:`display_loss`, :class:`~octcl.host.adam.Adam`): ρ, θ, losses."""
+    adam = Adam((log_magnitude.shape, phase.shape), dtype=log_magnitude.dtype)
+    losses = []
+    trials = _thread_trials(threads, schedule.iterations)
     trial_seconds = {}
-    while len(losses) < iterations and time_fraction() < 1.0:
+    while schedule.go_on(len(losses)):
         trial = len(losses)
         if trial < len(trials):
             operator.workers = trials[trial]
         elif trial == len(trials) and trial_seconds:
             operator.workers = min(trial_seconds, key=trial_seconds.get)
         step_start = time.perf_counter()
-        lr = learning_rate()
+        lr = schedule.rate(len(losses))
         field = np.exp(log_magnitude) * (np.cos(phase) + 1j * np.sin(phase))
         loss, gradient = display_loss(field, operator, goal)
         # ∂L/∂ln|F| = Re(conj(G)·F), ∂L/∂arg F = Re(conj(G)·iF) = −Im(conj(G)·F).
@@ -614,12 +651,30 @@ def fit_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: int = 
         if 0 < trial < len(trials):
             trial_seconds[trials[trial]] = trial_seconds.get(trials[trial], 0.0) + time.perf_counter() - step_start
         if progress is not None:
-            progress(len(losses), iterations, loss)
+            progress(len(losses), schedule.iterations, loss)
+    return log_magnitude, phase, losses
 
-    field = np.exp(log_magnitude.astype(np.float64)) * np.exp(1j * phase.astype(np.float64))
-    a_scans = operator.apply(field)
-    field /= np.abs(a_scans).max()
-    display = Rendering.from_a_scans(a_scans).display
-    return FieldFit(field=field, display=display, target_display=goal.display.astype(np.float64),
-                    losses=np.array(losses), iterations=len(losses),
-                    seconds=time.perf_counter() - start, threads=operator.workers, clock_steps=clock_steps)
+
+def _fit_on_device(kernels, goal: DisplayGoal, log_magnitude, phase, schedule: _CosineSchedule, progress):
+    """The display fit's steps as OpenCL kernels (:class:`~octcl.host.display_kernels.DisplayFitKernels`): ρ, θ,
+    losses. The loop enqueues steps without reading the device; it reads the losses every
+    :data:`~octcl.host.display_kernels.LOSS_READ_EVERY` steps for ``progress`` and at the end. The clock is the
+    host's: a step is enqueued while the schedule allows, and the queue is drained every
+    ``LOSS_READ_EVERY`` steps so that the clock sees the device's pace."""
+    from .display_kernels import LOSS_READ_EVERY, DisplayFitKernels
+
+    fit = DisplayFitKernels(kernels, goal, log_magnitude, phase, schedule.iterations)
+    taken = reported = 0
+    while schedule.go_on(taken):
+        fit.step(schedule.rate(taken))
+        taken += 1
+        if taken % LOSS_READ_EVERY == 0:
+            losses = fit.losses()  # waits for the queue
+            for index in range(reported, taken) if progress is not None else ():
+                progress(index + 1, schedule.iterations, float(losses[index]))
+            reported = taken
+    losses = fit.losses()
+    for index in range(reported, taken) if progress is not None else ():
+        progress(index + 1, schedule.iterations, float(losses[index]))
+    log_magnitude, phase = fit.parameters()
+    return log_magnitude, phase, losses

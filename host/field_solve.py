@@ -180,6 +180,10 @@ class FieldSolve:
     score : callable, optional
         ``score(levels) -> float``, the exact score against the target: the
         ``aim`` step's judge (:class:`octcl.host.aim.AimSearch`).
+    kernels : FieldKernels, optional
+        Run the field steps as OpenCL kernels on its device
+        (:mod:`octcl.host.field_kernels`, :mod:`octcl.host.display_kernels`);
+        None: in NumPy, the reference (``--backend numpy``).
 
     Attributes
     ----------
@@ -195,6 +199,7 @@ class FieldSolve:
     config: ScannerConfig = DEFAULT_CONFIG
     threads: int | None = None
     score: object = None
+    kernels: object = None
     field: np.ndarray | None = None
     identical: float = 0.0
     best_field: np.ndarray | None = None
@@ -255,7 +260,7 @@ def _display_step(solve: FieldSolve, iterations: int, budget_s, progress):
     from .field import fit_field
 
     fit = fit_field(solve.levels, solve.config, iterations=iterations, time_budget_s=budget_s,
-                    threads=solve.threads, initial=solve.field,
+                    threads=solve.threads, initial=solve.field, kernels=solve.kernels,
                     progress=lambda taken, planned, loss: progress(taken, planned))
     solve.threads = fit.threads
     return fit.field, fit.iterations, min(fit.clock_steps, 1)

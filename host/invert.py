@@ -72,6 +72,8 @@ from .target import check_target, read_target, target_scan, target_struct_for_me
 CHECKPOINT_INTERVAL_S = 20.0
 #: Stages 1–2 by name (module docstring), the default first.
 REGIMES = ("linear", "physical")
+#: Where stage 1 runs: the OpenCL device (default) or NumPy on the host (the reference).
+BACKENDS = ("opencl", "numpy")
 #: Share of the time budget stage 1 may use, and its cap in seconds. In the
 #: physical regime stage 1 usually ends first at its 1500 iterations (11–12 s
 #: on two idle cores); its length matters little for the end result: on
@@ -488,13 +490,14 @@ class _Start:
 
 
 def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
-                    exact_score) -> _Start:
+                    exact_score, field_kernels) -> _Start:
     """Stages 1–2 of the published pipeline: :func:`~octcl.host.field.fit_field`, then
     :func:`~octcl.host.decode.decode_field`."""
     from .decode import decode_field
     from .field import fit_field
 
-    fit = fit_field(scan, config, iterations=iterations, time_budget_s=budget_s, threads=threads, progress=step)
+    fit = fit_field(scan, config, iterations=iterations, time_budget_s=budget_s, threads=threads, progress=step,
+                    kernels=field_kernels)
     tell("decode", 0, 1)
     start = time.monotonic()
     phantom = decode_field(fit.field, config, max_scatterers=TARGET_ROWS, seed=seed)
@@ -504,7 +507,7 @@ def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s
 
 
 def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
-                  exact_score) -> _Start:
+                  exact_score, field_kernels) -> _Start:
     """Stages 1–2 in the linear regime (:mod:`octcl.host.linear`); draws nothing at random.
 
     The aim is :func:`~octcl.host.ceiling.aimed_levels` of the target. Stage 1
@@ -522,7 +525,7 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
     schedules = default_schedules(iterations) if field_schedule is None else (field_schedule,)
     found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, schedules=schedules,
                          time_budget_s=budget_s, threads=threads,
-                         progress=lambda taken, planned: step(taken, planned, None), aim=aim)
+                         progress=lambda taken, planned: step(taken, planned, None), aim=aim, kernels=field_kernels)
     tell("decode", 0, 1)
     start = time.monotonic()
     phantom = decode_exact(found.field, config)
@@ -542,7 +545,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
            field_iterations: int | None = None, threads: int | None = None,
            name: str | None = None, target_score: float | None = None,
            regime: str = REGIMES[0], started: float | None = None,
-           field_schedule=None) -> InvertResult:
+           field_schedule=None, backend: str = BACKENDS[0]) -> InvertResult:
     """Invert a target B-scan into a phantom file.
 
     Parameters
@@ -610,6 +613,11 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         (:class:`octcl.host.field_solve.FieldSchedule`, e.g.
         ``"display:150,project:100,hinge:200"``), one candidate, in place of
         the default candidates of ``field_iterations`` display steps.
+    backend : str
+        Where stage 1 runs (:data:`BACKENDS`): ``opencl`` (default), its
+        steps as kernels on the device that renders (``OCTCL_DEVICE`` or
+        octcl's choice, :mod:`octcl._runtime`), or ``numpy``, the host
+        reference. Stage 3 runs on the device either way.
     started : float, optional
         ``time.monotonic()`` at which the budget began; default: the call.
         ``octcl invert`` passes its process's start, so that the budget
@@ -644,6 +652,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         if count is not None and not (isinstance(count, int) and count >= 1):
             raise ValueError(f"{label} must be a whole number ≥ 1, got {count!r}")
     check_regime(regime)
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     field_iterations = FIELD_ITERATIONS[regime] if field_iterations is None else field_iterations
     if field_schedule is not None:
         from .field_solve import FieldSchedule
@@ -689,9 +699,13 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     try:
         tell("field", 0, 0)
         exact_score = _LazyExactScore(target, config)
+        field_kernels = None
+        if backend == "opencl":
+            from .field_kernels import FieldKernels
+
+            field_kernels = FieldKernels(config)
         first = _STARTS[regime](target_scan(target), config, schedule, field_iterations, field_schedule, field_budget,
-                                threads, seed,
-                                field_step, tell, exact_score)
+                                threads, seed, field_step, tell, exact_score, field_kernels)
         seconds.update(first.seconds)
         trace.append({"time_s": elapsed(), "stage": "field", "iteration": first.field_iterations,
                       "loss": first.field_loss, "score": None})
@@ -742,7 +756,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         stopped_by_deadline=result.stopped_by_deadline, stop_reason=result.stop_reason,
         falls=result.falls, seed=seed, field_iterations=first.field_iterations, regime=regime,
         fixed_schedule=fixed, threads=threads,
-        reproduce=f"--regime {regime} --seed {seed} --iterations {result.iterations} "
+        reproduce=f"--regime {regime} --backend {backend} --seed {seed} --iterations {result.iterations} "
                   + (f"--field-iterations {first.field_iterations} " if field_schedule is None
                      else f"--field-schedule {field_schedule} ")
                   + f"--threads {FIXED_THREADS if threads is None else threads}",
@@ -755,6 +769,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
             "initial_components": result.initial_components,
             "settings": {"time_budget_s": time_budget_s, "field_budget_s": field_budget,
                          "field_iterations_planned": field_iterations, "field_threads": first.threads,
+                         "field_backend": backend,
                          "field_clock_steps": first.clock_steps, "field_candidates": first.candidates,
                          "refine_threads": result.torch_threads,
                          "schedule": dataclasses.asdict(first.schedule), "config": dataclasses.asdict(config),
@@ -768,6 +783,6 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     return outcome
 
 
-__all__ = ["CHECKPOINT_INTERVAL_S", "FIELD_ITERATIONS", "FIXED_THREADS", "InvertProgress", "InvertResult",
+__all__ = ["BACKENDS", "CHECKPOINT_INTERVAL_S", "FIELD_ITERATIONS", "FIXED_THREADS", "InvertProgress", "InvertResult",
            "LINEAR_SCHEDULE", "REGIMES", "check_regime", "default_schedule",
            "TimeBudgetExceeded", "invert", "peak_memory_mib", "read_target"]

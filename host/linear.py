@@ -426,7 +426,7 @@ class LinearStart:
 
 def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedules: tuple | None = None,
                  time_budget_s: float | None = None, threads: int | None = None, progress=None,
-                 aim: np.ndarray | None = None) -> LinearStart:
+                 aim: np.ndarray | None = None, kernels=None) -> LinearStart:
     """Stage 1 of the linear regime: candidate schedules of named steps, the best field by score.
 
     Each candidate is a :class:`~octcl.host.field_solve.FieldSchedule` run
@@ -471,6 +471,8 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedule
     aim : ndarray of uint8, optional
         The levels the steps aim at; default the target's own. The
         candidates are still judged by ``score`` against the target.
+    kernels : FieldKernels, optional
+        The steps' OpenCL backend (:class:`~octcl.host.field_solve.FieldSolve`); None: NumPy.
 
     Returns
     -------
@@ -495,7 +497,8 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedule
             clock_steps += 1
             continue
         began = time.perf_counter()
-        solve = FieldSolve(levels, aim, config, threads if not solves else solves[0].threads, score=score)
+        solve = FieldSolve(levels, aim, config, threads if not solves else solves[0].threads, score=score,
+                           kernels=kernels)
         solve.run(schedule, time_budget_s=None if solves or time_budget_s is None else time_budget_s - elapsed(),
                   progress=lambda step, steps, offset=done: progress and progress(offset + step, total))
         clock_steps += solve.clock_steps

@@ -251,7 +251,7 @@ def _cmd_invert(args) -> int:
         raise UsageError("--targets needs --out DIR")
     if args.target and not args.output:
         raise UsageError("invert needs -o PHANTOM.txt")
-    from .host.invert import REGIMES, TimeBudgetExceeded, default_schedule, invert
+    from .host.invert import BACKENDS, REGIMES, TimeBudgetExceeded, default_schedule, invert
 
     # Stage options for one scan or each scan of a batch: the fixed schedule's (docs/reproducibility.md)
     # and the target score.
@@ -270,6 +270,8 @@ def _cmd_invert(args) -> int:
                              "--field-iterations")
     if args.regime != REGIMES[0]:  # defaults are left out, so earlier batches still resume
         schedule["regime"] = args.regime
+    if args.backend != BACKENDS[0]:
+        schedule["backend"] = args.backend
     if args.stop_rule != "restarts":
         schedule["schedule"] = default_schedule(args.regime).with_stop_rule(args.stop_rule)
     if args.target:
@@ -434,6 +436,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(Adam on the display), project (projections onto the levels), hinge (L-BFGS onto the "
                         "levels), aim (rounds choosing the sides of unwritable levels for the score); the "
                         "default's first candidate is display:150,project:100,hinge:200,aim:4")
+    p.add_argument("--backend", choices=("opencl", "numpy"), default="opencl",
+                   help="stage 1 as OpenCL kernels on the device that renders (default) or the NumPy reference "
+                        "on the host")
     p.add_argument("--threads", type=int, metavar="T",
                    help="CPU threads for the whole run (default with --iterations: 1; without: chosen "
                         "by timing)")
