@@ -17,7 +17,7 @@ import hashlib
 
 import numpy as np
 import pytest
-from conftest import OCLGRIND_LOG, implementation_device
+from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
 
 from octcl import _reference as ref
 from octcl.config import ScannerConfig
@@ -465,21 +465,6 @@ def test_contribution_ranges_follow_the_reference_window_test():
 # ------------------------------------------------------------- under Oclgrind
 #: Oclgrind interprets every work-item, so its scenes are small: 8 A-scans 6 µm apart.
 SMALL = ScannerConfig(a_scans=8, xmax_um=48.0)
-
-
-def oclgrind_reports(text: str) -> list[str]:
-    """Oclgrind's reports in ``text``: its log (tests/conftest.py), which gets those about kernels,
-    and standard error, which gets those about API calls made outside a context.
-
-    One report is left out: pyopencl asks every device for NVIDIA's compute
-    capability (CL_DEVICE_COMPUTE_CAPABILITY_MAJOR_NV, a vendor extension) in
-    a try block before a kernel's first launch, and Oclgrind's API check
-    reports the CL_INVALID_VALUE it answers. The call is pyopencl's and legal.
-    """
-    reports = [block.strip() for block in text.split("\n\n") if "Oclgrind" in block or "Kernel:" in block]
-    vendor_query = ["Oclgrind - OpenCL runtime error detected", "Function: clGetDeviceInfo",
-                    "Error:    CL_INVALID_VALUE", "For argument 'param_name'"]
-    return [report for report in reports if [line.strip() for line in report.splitlines()] != vendor_query]
 
 
 @pytest.fixture(scope="module", params=["oclgrind"])
