@@ -23,12 +23,14 @@ the kernel's in vendor and OS; that is how Debian's libclc is built and is
 ignored when the architectures agree. The kernels compile warning-free today,
 so any other warning is new and worth a look.
 
-Build recipe: the defines come from ``octcl._runtime.build_options`` and
-``octcl._scanner_op.program_defines`` (the functions octcl's own builds use),
-at the default scanner configuration (Nz = 256); the language is OpenCL C 1.2
-at -O3, as an OpenCL driver compiles it. libclc provides the builtins
-(``-mlink-builtin-bitcode``: only the functions used are linked and they take
-the target's features).
+Build recipe: the defines come from ``octcl._runtime.build_options``,
+``octcl._scanner_op.program_defines`` and
+``octcl.host.field_kernels.program_defines`` (the functions octcl's own
+builds use), at the default scanner configuration (Nz = 256, Nx = 512; the
+field operator's work-groups of 64, as on any device that allows them); the
+language is OpenCL C 1.2 at -O3, as an OpenCL driver compiles it. libclc
+provides the builtins (``-mlink-builtin-bitcode``: only the functions used
+are linked and they take the target's features).
 
 Fields reported per kernel (``--json``: one object a line):
 
@@ -72,11 +74,12 @@ Registry: ``KERNEL_FILES`` names how each kernel file is built and ``KNOBS``
 the compile-time knob values compiled. Kernel names are read from the
 compiler's output; a ``kernels/*.cl`` that is not registered fails the run.
 
-Measured (docs/benchmarks.md): the default builds (2 kernel files, W ∈ {8,
+Measured (docs/benchmarks.md): the default builds (3 kernel files, W ∈ {8,
 16}, 3 targets) take about 70 s of CPU, about 40 s on two cores; almost all
 of it is LLVM's AMDGPU instruction scheduler on the float32 scanner (13 s per
-build, against 3 s for float64 and under 1 s for PTX). All of W = 2 … 16 is
-``--knob spread_width=2..16``.
+build, against 3 s for float64 and under 1 s for PTX); the field operator's
+two builds for the 3 targets take under 2 s (``--kernels field_operator``).
+All of W = 2 … 16 is ``--knob spread_width=2..16``.
 
     python scripts/kernel_resources.py                 # table
     python scripts/kernel_resources.py --markdown      # table for docs
@@ -107,6 +110,8 @@ sys.path.insert(0, str(REPO))
 from octcl._runtime import build_options  # noqa: E402
 from octcl._scanner_op import KernelSettings, program_defines  # noqa: E402
 from octcl.config import DEFAULT_CONFIG  # noqa: E402
+from octcl.host import field_kernels  # noqa: E402
+from octcl.host.field import lateral_taps  # noqa: E402
 
 
 # ------------------------------------------------------------------ registry
@@ -129,6 +134,11 @@ def _scanner_defines(settings: KernelSettings) -> tuple:
     return program_defines(DEFAULT_CONFIG, settings)
 
 
+def _field_operator_defines(settings: KernelSettings) -> tuple:
+    """The field operator's defines: R = 2 taps either side, P = 1024 padded columns (no knob)."""
+    return field_kernels.program_defines(DEFAULT_CONFIG, lateral_taps(DEFAULT_CONFIG).size // 2)
+
+
 def _no_defines(settings: KernelSettings) -> tuple:
     return ()
 
@@ -137,6 +147,7 @@ def _no_defines(settings: KernelSettings) -> tuple:
 KERNEL_FILES = (
     KernelFile("scanner", _scanner_defines, ("float32", "float64")),
     KernelFile("depth_order", _no_defines, ("integer",)),
+    KernelFile("field_operator", _field_operator_defines, ("float32", "float64")),
 )
 
 #: Compile-time knobs (fields of KernelSettings) and the values compiled. Every

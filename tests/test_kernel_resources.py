@@ -12,9 +12,13 @@ import pytest
 from octcl._runtime import build_options
 from octcl._scanner_op import WORK_GROUP_SIZE, KernelSettings, program_defines
 from octcl.config import DEFAULT_CONFIG
+from octcl.host import field_kernels
+from octcl.host.field import FieldOperator
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "kernel_resources.py"
+#: The field operator's lateral reach R at the default scanner, as FieldKernels takes it.
+FIELD_REACH = (FieldOperator(DEFAULT_CONFIG).taps.size - 1) // 2
 
 _spec = importlib.util.spec_from_file_location("kernel_resources", SCRIPT)
 kr = sys.modules.setdefault("kernel_resources", importlib.util.module_from_spec(_spec))
@@ -46,6 +50,11 @@ def test_builds_are_octcls_builds_for_every_knob_and_precision():
     assert len(scanner) == 4  # the repeated 8 is built once
     # The depth order does not depend on the knobs: one integer build, no knob reported.
     assert [(b.precision, b.knobs, b.options) for b in builds if b.file == "depth_order"] == [("integer", (), ())]
+    # Nor does the field operator: FieldKernels' defines at the default scanner, float32 and float64.
+    defines = field_kernels.program_defines(DEFAULT_CONFIG, FIELD_REACH)
+    assert [(b.precision, b.knobs, b.options) for b in builds if b.file == "field_operator"] == [
+        (precision, (), tuple(build_options(defines, double=precision == "float64")))
+        for precision in ("float32", "float64")]
 
 
 def test_an_unregistered_kernel_file_fails_the_run(tmp_path):
@@ -111,6 +120,16 @@ def test_every_kernel_compiles_and_reports_its_private_arrays(compilers):
                 assert record["private_bytes"] == 0
                 assert record["shared_bytes"] >= grids * grid * complex_bytes
                 assert record["block_size"] == WORK_GROUP_SIZE
+        # The field operator's transforms ping-pong between two local arrays of Nz (depth) or P
+        # (columns) complex values: nothing private, blocks of its required work-group size.
+        padded = field_kernels.padded_columns(DEFAULT_CONFIG, FIELD_REACH)
+        for kernel, length in (("depth_convolve", DEFAULT_CONFIG.depth_pixels),
+                               ("depth_fft", DEFAULT_CONFIG.depth_pixels), ("lateral_filter", padded)):
+            record = found[(kernel, "sm_80", precision, None)]
+            assert record["private_bytes"] == 0
+            assert record["shared_bytes"] >= 2 * length * complex_bytes
+            assert record["block_size"] == field_kernels.WORK_GROUP_SIZE
+        assert found[("lateral_convolve", "sm_80", precision, None)]["private_bytes"] == 0
 
 
 BROKEN_KERNELS = {
