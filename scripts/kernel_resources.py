@@ -110,7 +110,7 @@ sys.path.insert(0, str(REPO))
 from octcl._runtime import build_options  # noqa: E402
 from octcl._scanner_op import KernelSettings, program_defines  # noqa: E402
 from octcl.config import DEFAULT_CONFIG  # noqa: E402
-from octcl.host import field_kernels  # noqa: E402
+from octcl.host import display_kernels, field_kernels  # noqa: E402
 from octcl.host.field import lateral_taps  # noqa: E402
 
 
@@ -139,6 +139,12 @@ def _field_operator_defines(settings: KernelSettings) -> tuple:
     return field_kernels.program_defines(DEFAULT_CONFIG, lateral_taps(DEFAULT_CONFIG).size // 2)
 
 
+def _display_fit_defines(settings: KernelSettings) -> tuple:
+    """The display fit's defines (``display_loss.cl``, ``adam.cl``) as a GPU gets them: λ_E = 0.1, a work-group
+    per 8·64 pixels of a pass (no knob)."""
+    return display_kernels.program_defines(DEFAULT_CONFIG, 0.1, cpu=False)
+
+
 def _no_defines(settings: KernelSettings) -> tuple:
     return ()
 
@@ -148,6 +154,8 @@ KERNEL_FILES = (
     KernelFile("scanner", _scanner_defines, ("float32", "float64")),
     KernelFile("depth_order", _no_defines, ("integer",)),
     KernelFile("field_operator", _field_operator_defines, ("float32", "float64")),
+    KernelFile("display_loss", _display_fit_defines, ("float32", "float64")),
+    KernelFile("adam", _display_fit_defines, ("float32", "float64")),
 )
 
 #: Compile-time knobs (fields of KernelSettings) and the values compiled. Every

@@ -355,7 +355,7 @@ def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, official_
     # Stage 1 renders this scan (the scanner's own) exactly: stage 3 has nothing to refine.
     assert (first["iterations"], first["field_iterations"], first["threads"]) == (0, 20, 1)
     assert first["stop_reason"] == "ceiling" and first["exact_share"] == 1.0 and first["score"] == 1.0
-    assert first["reproduce"] == "--regime linear --seed 5 --iterations 0 --field-iterations 20 --threads 1"
+    assert first["reproduce"] == "--regime linear --backend opencl --seed 5 --iterations 0 --field-iterations 20 --threads 1"
     # The target as an array (what a batch runner sends a worker): in the
     # linear regime nothing is drawn at random, so another seed gives the
     # same file; in the physical regime it draws other elevations in stage 2.
@@ -365,7 +365,7 @@ def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, official_
     assert (tmp_path / "c.txt").read_bytes() == (tmp_path / "a.txt").read_bytes()
     physical = [octcl.invert(array, tmp_path / f"p{seed}.txt", seed=seed, iterations=2, field_iterations=20,
                              regime="physical") for seed in (5, 6)]
-    assert physical[0].reproduce.startswith("--regime physical --seed 5 --iterations 2")
+    assert physical[0].reproduce.startswith("--regime physical --backend opencl --seed 5 --iterations 2")
     assert (tmp_path / "p5.txt").read_bytes() != (tmp_path / "p6.txt").read_bytes()
 
 

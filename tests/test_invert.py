@@ -57,6 +57,24 @@ def test_bad_budget_is_refused(layers_path, tmp_path):
         invert(layers_path, tmp_path / "out.txt", time_budget_s=0)
 
 
+def test_an_unknown_backend_is_refused(layers_path, tmp_path):
+    with pytest.raises(ValueError, match="backend must be one of opencl, numpy"):
+        invert(layers_path, tmp_path / "out.txt", backend="cuda")
+    assert not (tmp_path / "out.txt").exists()
+
+
+@pytest.mark.parametrize("backend", ["opencl", "numpy"])
+def test_either_backend_renders_every_level_of_a_scanner_rendered_scan(layers_path, tmp_path, backend):
+    """Stage 1 on the device (the default) and the NumPy reference: the same fixed schedule puts every pixel
+    of Layers A at its level, the report says which backend ran and the reproduce options name it."""
+    report = tmp_path / "report.json"
+    result = invert(layers_path, tmp_path / "out.txt", iterations=0, field_iterations=60, backend=backend,
+                    report_path=report)
+    assert result.exact_share == 1.0 and result.score == 1.0
+    assert json.loads(report.read_text())["settings"]["field_backend"] == backend
+    assert f"--backend {backend} " in result.reproduce
+
+
 def test_budget_is_respected_and_report_written(layers_path, tmp_path):
     """The physical regime's stages cut by the clock: stage 1 by its share, stage 3 by the deadline."""
     budget = 30.0
