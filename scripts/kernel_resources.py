@@ -110,7 +110,7 @@ sys.path.insert(0, str(REPO))
 from octcl._runtime import build_options  # noqa: E402
 from octcl._scanner_op import KernelSettings, program_defines  # noqa: E402
 from octcl.config import DEFAULT_CONFIG  # noqa: E402
-from octcl.host import display_kernels, field_kernels  # noqa: E402
+from octcl.host import display_kernels, field_kernels, lbfgs_device  # noqa: E402
 from octcl.host.field import lateral_taps  # noqa: E402
 
 
@@ -145,6 +145,11 @@ def _display_fit_defines(settings: KernelSettings) -> tuple:
     return display_kernels.program_defines(DEFAULT_CONFIG, 0.1, cpu=False)
 
 
+def _reduction_defines(settings: KernelSettings) -> tuple:
+    """``level_fit.cl``'s and ``lbfgs.cl``'s defines: reductions in work-groups of 64 (no knob)."""
+    return lbfgs_device.program_defines()
+
+
 def _no_defines(settings: KernelSettings) -> tuple:
     return ()
 
@@ -156,6 +161,8 @@ KERNEL_FILES = (
     KernelFile("field_operator", _field_operator_defines, ("float32", "float64")),
     KernelFile("display_loss", _display_fit_defines, ("float32", "float64")),
     KernelFile("adam", _display_fit_defines, ("float32", "float64")),
+    KernelFile("level_fit", _reduction_defines, ("float32", "float64")),
+    KernelFile("lbfgs", _reduction_defines, ("float32", "float64")),
 )
 
 #: Compile-time knobs (fields of KernelSettings) and the values compiled. Every
