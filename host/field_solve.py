@@ -19,6 +19,12 @@ regularised inverse of the de-logged target with zero phase):
   projections onto the aimed levels' intervals: most pixels onto their level.
 - ``hinge``: :func:`octcl.host.linear.fit_levels`, L-BFGS on the squared
   distance to the intervals, the brightest pixel pinned: the last pixels.
+
+Each step has two backends with one schedule: NumPy on the host (the
+reference, ``--backend numpy``) and OpenCL kernels on a device
+(:attr:`FieldSolve.kernels`: :func:`~octcl.host.field.fit_field` with its
+``kernels``, :mod:`octcl.host.linear_device`); the field passes between
+steps on the host, once per step.
 - ``aim``: :class:`octcl.host.aim.AimSearch`, rounds that move unwritable
   pixels of the aim to their other side where the exact score gains and a
   short hinge fit can follow; from a field at its aim, which it keeps there.
@@ -213,6 +219,18 @@ class FieldSolve:
 
         return regularised_start(self.levels, FieldOperator(self.config, self.threads or 1))
 
+    def fit_levels(self, field: np.ndarray, aim: np.ndarray, iterations: int, budget_s: float | None = None):
+        """The hinge fit of ``field`` onto ``aim`` on this solve's backend: :func:`octcl.host.linear.fit_levels`
+        or, on a device, :func:`octcl.host.linear_device.fit_levels_device`."""
+        if self.kernels is not None:
+            from .linear_device import fit_levels_device
+
+            return fit_levels_device(self.kernels, field, aim, iterations=iterations, time_budget_s=budget_s)
+        from .linear import fit_levels
+
+        return fit_levels(field, aim, self.config, iterations=iterations, time_budget_s=budget_s,
+                          workers=self.threads or 1)
+
     def share_at_aim(self, field_now: np.ndarray) -> float:
         """Share of pixels the field renders at their aimed level."""
         return float(np.mean(Rendering.from_a_scans(FieldOperator(self.config).apply(field_now)).levels
@@ -267,6 +285,12 @@ def _display_step(solve: FieldSolve, iterations: int, budget_s, progress):
 
 
 def _project_step(solve: FieldSolve, iterations: int, budget_s, progress):
+    if solve.kernels is not None:
+        from .linear_device import retrieve_field_device
+
+        fit = retrieve_field_device(solve.kernels, solve.levels, iterations=iterations, time_budget_s=budget_s,
+                                    initial=solve.field, aim=solve.aim, progress=progress)
+        return fit.field, fit.iterations, fit.clock_steps
     from .linear import retrieve_field
 
     fit = retrieve_field(solve.levels, solve.config, iterations=iterations, time_budget_s=budget_s,
@@ -275,11 +299,8 @@ def _project_step(solve: FieldSolve, iterations: int, budget_s, progress):
 
 
 def _hinge_step(solve: FieldSolve, iterations: int, budget_s, progress):
-    from .linear import fit_levels
-
     start = solve.start_field() if solve.field is None else solve.field
-    fit = fit_levels(start, solve.aim, solve.config, iterations=iterations, time_budget_s=budget_s,
-                     workers=solve.threads or 1)
+    fit = solve.fit_levels(start, solve.aim, iterations, budget_s)
     progress(fit.iterations, iterations)
     return fit.field, fit.iterations, fit.clock_steps
 
@@ -304,9 +325,7 @@ def _aim_step(solve: FieldSolve, rounds: int, budget_s, progress):
     solve.field = solve.best_field
 
     def reach(levels):
-        from .linear import fit_levels
-
-        fit = fit_levels(solve.field, levels, solve.config, iterations=AIM_HINGE_ITERATIONS, workers=solve.threads or 1)
+        fit = solve.fit_levels(solve.field, levels, AIM_HINGE_ITERATIONS)
         return fit.field if fit.identical == 1.0 else None
 
     aim_score = None
