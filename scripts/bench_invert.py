@@ -118,14 +118,16 @@ def development_set(out: Path, skin: int, plain: int = 0) -> dict[str, Path]:
 #: default's phases and restarts, each run to its whole length (the schedule
 #: before adaptive stopping); ``stall-rule`` adds the main run's stall rule
 #: with a patience of 2 checkpoints (host/refine.py); ``no-fall-guard`` never
-#: goes back to the best phantom when the main run falls (``max_falls`` 0).
+#: goes back to the best phantom when the main run falls (``max_falls`` 0); ``numpy`` the default with stage 1
+#: on the host (``--backend numpy``), the reference the device path is measured against.
 #: Variants of the loss are compared by ``bench_refine.py``.
 SCHEDULES = {"default": "", "physical": "regime='physical'", "budget-10": "time_budget_s=10.0",
              "budget-5": "time_budget_s=5.0", "budget-3": "time_budget_s=3.0",
              "field-300": "field_iterations=300", "field-75": "field_iterations=75",
              "no-aim": "field_schedule='display:150,project:100,hinge:200'",
              "fixed-length": "schedule=RefineSchedule().fixed_length()",
-             "stall-rule": "schedule=RefineSchedule(patience=2)", "no-fall-guard": "schedule=RefineSchedule(max_falls=0)"}
+             "stall-rule": "schedule=RefineSchedule(patience=2)", "no-fall-guard": "schedule=RefineSchedule(max_falls=0)",
+             "numpy": "backend='numpy'"}
 
 
 def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None,

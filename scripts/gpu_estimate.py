@@ -32,6 +32,20 @@ and the host: the layout (depth order on a CPU device, bins, uploads:
 measured on this machine, printed below) and PCIe transfers (z, E in;
 A-scans and gradients out).
 
+Stage 1's field solve (the default's ``display:150,project:100,hinge:H``)
+is counted from its kernels' passes over the (Nz, Nx) field
+(:func:`field_solve_work`): per display-fit step, projection step and
+hinge iteration the bytes each kernel reads and writes once (the stencils'
+neighbours from cache), the FFT flops (5·n·log2 n per complex n-point
+transform: two 256-point depth transforms per A-scan for H, and for H⁺ two
+more and two 1024-point lateral ones per depth frequency) and the kernel
+launches, at an assumed LAUNCH_S each; the hinge fit adds one read of a
+few scalars per line-search trial and, every 10 iterations, the field
+downloaded for the host's level check. Each step is the larger of its
+memory and flop times plus its launches. The host's own part of stage 1
+(the start, each step's share at aim, the result: a few float64 FFTs of
+the field per step on the CPU) is measured here and printed beside it.
+
 Peak rates are the vendors' datasheet figures (boost clock):
 
 - NVIDIA H100 SXM5 80 GB: 3.35 TB/s HBM3, 66.9 TFLOP/s FP32 (non-tensor),
@@ -74,6 +88,50 @@ SPECIAL_PER_TAP = 2
 #: for the double word), a global load that the group must wait for, and the
 #: taps; the adjoint adds the affine suffix scan and the second grid.
 CHUNK_CYCLES = {"forward": 2000, "adjoint": 3000}
+#: Assumed seconds per kernel launch on a GPU's in-order queue, and per blocking read of a few bytes.
+LAUNCH_S = 5e-6
+READ_S = 20e-6
+#: Hinge iterations of the estimate: what the default's hinge step took on the development set (30-70).
+HINGE_ITERATIONS = 50
+
+
+def field_solve_work(nz: int = 256, nx: int = 512, padded: int = 1024, pairs: int = 10) -> dict:
+    """Bytes, flops and launches of stage 1's steps on the device (module docstring), float32."""
+    field, image = 8 * nz * nx, 4 * nz * nx          # a complex field, a real image
+    depth_fft = 5 * nz * math.log2(nz) * nx          # one depth transform of every A-scan
+    lateral_fft = 5 * padded * math.log2(padded) * nz
+    apply = {"bytes": 4 * field, "flops": 2 * depth_fft + 10 * nz * nx, "launches": 2}
+    display = {"bytes": 2 * apply["bytes"] + 2 * field + (2 * field + 2 * image) + 4 * image + 5 * image
+               + (2 * field + image) + (3 * field + 6 * image + 4 * image),
+               "flops": 2 * apply["flops"] + 200 * nz * nx, "launches": 2 * apply["launches"] + 8}
+    project = {"bytes": apply["bytes"] + 3 * field + 4 * field + image * padded // nx + 6 * field,
+               "flops": apply["flops"] + 2 * depth_fft + 2 * lateral_fft + 40 * nz * nx,
+               "launches": apply["launches"] + 5}
+    evaluation = {"bytes": 2 * apply["bytes"] + 3 * field, "flops": 2 * apply["flops"], "launches": 7}
+    two_loop = {"bytes": pairs * 4 * 2.5 * field, "flops": pairs * 8 * 2 * nz * nx, "launches": 4 * pairs + 6}
+    hinge = {key: evaluation[key] + two_loop[key] for key in evaluation}
+    hinge["reads"] = 1 + field / 25e9 / READ_S / 10    # a read per trial; a tenth of a download each iteration
+    return {"display": display, "project": project, "hinge": hinge}
+
+
+def field_solve_seconds(work: dict, gpu: dict) -> float:
+    """One step: the larger of its memory and FP32 times, plus its launches and reads."""
+    return (max(work["bytes"] / gpu["bandwidth"], work["flops"] / gpu["flops"]) + work["launches"] * LAUNCH_S
+            + work.get("reads", 0) * READ_S)
+
+
+def host_share_of_stage_1_s() -> float:
+    """Seconds of the host's float64 work per stage-1 step on this machine: the share at aim after a step
+    (one FieldOperator.apply and the rendering's levels), the dominant host work between device steps."""
+    from octcl.host.field import FieldOperator
+    from octcl.render import Rendering
+
+    operator = FieldOperator()
+    field = np.random.default_rng(0).normal(size=operator.config.shape) * (1 + 0j)
+    start = time.perf_counter()
+    for _ in range(5):
+        Rendering.from_a_scans(operator.apply(field))
+    return (time.perf_counter() - start) / 5
 
 
 def count(phantom: Phantom, kernels: ScannerKernels) -> dict:
@@ -133,6 +191,18 @@ def main() -> None:
                 transfer = counted["transfer_bytes"][stage] / gpu["pcie"]
                 cells.append(f"{stage} {1000 * seconds:.2f} ms ({bound}-bound) + PCIe {1000 * transfer:.2f} ms")
             print(f"  {gpu_name}: " + "; ".join(cells))
+    work = field_solve_work()
+    host_s = host_share_of_stage_1_s()
+    print(f"stage 1, display:150,project:100,hinge:{HINGE_ITERATIONS} on the device (float32); the host's share "
+          f"at aim after each of the 4 steps and the level check every 10 hinge iterations take "
+          f"{1000 * host_s:.1f} ms each on this machine")
+    for gpu_name, gpu in GPUS.items():
+        steps = {name: field_solve_seconds(counted_work, gpu) for name, counted_work in work.items()}
+        total = 150 * steps["display"] + 100 * steps["project"] + HINGE_ITERATIONS * steps["hinge"]
+        host = (4 + HINGE_ITERATIONS / 10) * host_s
+        print(f"  {gpu_name}: display step {1e3 * steps['display']:.3f} ms, projection step "
+              f"{1e3 * steps['project']:.3f} ms, hinge iteration {1e3 * steps['hinge']:.3f} ms; "
+              f"stage 1 {1e3 * total:.0f} ms on the device + {1e3 * host:.0f} ms on the host")
 
 
 if __name__ == "__main__":
