@@ -97,11 +97,12 @@ def main(argv=None) -> int:
     aim = aimed_levels(levels)
     rows = []
 
+    host_display = {}
     for dtype in (np.float32, np.float64):
         seconds, _ = median_seconds(lambda: fit_field(levels, iterations=50, time_budget_s=None,
                                                       threads=args.threads, dtype=dtype), args.repeats)
         rows.append((f"display-fit step, {np.dtype(dtype).name}", f"{1e3 * seconds / 50:.1f} ms", ""))
-    host_display = seconds
+        host_display[np.dtype(dtype).name] = seconds
     seconds, _ = median_seconds(lambda: linear.retrieve_field(levels, iterations=50, aim=aim,
                                                               workers=args.threads), args.repeats)
     rows.append(("projection step, complex128", f"{1e3 * seconds / 50:.1f} ms", ""))
@@ -116,7 +117,7 @@ def main(argv=None) -> int:
     seconds, _ = median_seconds(lambda: fit_field(levels, iterations=50, time_budget_s=None, threads=args.threads,
                                                   kernels=kernels), args.repeats)
     rows.append(("display-fit step, OpenCL float32", f"{1e3 * seconds / 50:.1f} ms",
-                 f"host float32 / kernels: {host_display / seconds:.1f}×"))
+                 f"host float32 / kernels: {host_display['float32'] / seconds:.1f}×"))
     seconds, _ = median_seconds(lambda: retrieve_field_device(kernels, levels, iterations=50, aim=aim), args.repeats)
     rows.append(("projection step, OpenCL float32", f"{1e3 * seconds / 50:.1f} ms",
                  f"host complex128 / kernels: {host_projection / seconds:.1f}×"))
