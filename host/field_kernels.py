@@ -102,7 +102,6 @@ class FieldKernels:
         self._twiddle = self._upload(np.exp(-2j * np.pi * np.arange(twiddle_n // 2) / twiddle_n), self.complex)
         self._filter = self._upload(inverse, self.real)
         self._scratch = self.empty()
-        self.kernels_run = 0
 
     def _upload(self, values, dtype):
         return self._array.to_device(self.queue, np.ascontiguousarray(values, dtype=dtype))
@@ -131,7 +130,6 @@ class FieldKernels:
         self._depth_convolve(self.queue, (nx * self.work_group_size,), (self.work_group_size,), field.data,
                              self._scratch.data, self._window.data, self._twiddle.data)
         self._lateral_convolve(self.queue, (nx * nz,), None, self._scratch.data, out.data, self._taps.data)
-        self.kernels_run += 2
         return out
 
     #: Hᴴ = H: both parts have real transfer functions (``kernels/field_operator.cl``).
@@ -147,7 +145,6 @@ class FieldKernels:
                              self._twiddle.data)
         self._depth_fft(self.queue, (nx * group,), (group,), self._scratch.data, out.data, np.int32(1),
                         self._twiddle.data)
-        self.kernels_run += 3
         return out
 
 
