@@ -152,42 +152,48 @@ def test_dot_products_of_complex_fields_and_of_odd_length_vectors(ops):
 
 
 def test_vector_updates(ops):
-    """axpy, axpy_ratio (with its zero slot), axpy_ratio_dot, scale_ratio, pair_difference and copy on 1001
+    """axpy, pair_dots (the pair into its slot, its five sums and the four of each stored slot, nothing for the
+    others) and direction (the coefficients of the stored slots, the trial point) on rings of 3 slots of 1001
     reals."""
     import pyopencl.array as cl_array
 
     vectors, queue = ops.vectors, ops.kernels.queue
     rng = np.random.default_rng(11)
     x, y, z, w = (rng.normal(size=1001) for _ in range(4))
-    values = np.array([0.0, 1.5, -0.25, 3.0, 0.0])
+    s_ring, y_ring = rng.normal(size=(3, 1001)), rng.normal(size=(3, 1001))
 
     def device(value):
-        return cl_array.to_device(queue, value.astype(vectors.real))
+        return cl_array.to_device(queue, np.ravel(value).astype(vectors.real))
 
-    scalars = device(values)
+    def close(ours, theirs, terms):
+        return abs(ours - theirs) <= tolerance(ops) * terms
+
     out = device(np.zeros(1001))
     vectors.axpy(device(x), -0.375, device(y), out)
     assert relative_error(out.get(), x - 0.375 * y) < tolerance(ops)
-    target = device(y)
-    vectors.axpy_ratio(device(x), target, scalars, 0, 2, 3)  # y += (0 − (−0.25))/3·x
-    assert relative_error(target.get(), y + 0.25 / 3 * x) < tolerance(ops)
-    target = device(y)
-    vectors.axpy_ratio(device(x), target, scalars, 1, 2, 3)
-    assert relative_error(target.get(), y + (1.5 + 0.25) / 3 * x) < tolerance(ops)
-    target = device(y)
-    vectors.axpy_ratio_dot(device(x), target, scalars, 1, 2, 3, device(z), 4)
-    updated = y + (1.5 + 0.25) / 3 * x
-    assert relative_error(target.get(), updated) < tolerance(ops)
-    assert abs(scalars.get()[4] - updated @ z) <= tolerance(ops) * np.sum(np.abs(updated * z))
-    np.testing.assert_array_equal(scalars.get()[:4], values[:4].astype(vectors.real))
-    target = device(y)
-    vectors.scale_ratio(target, scalars, 1, 3)
-    assert relative_error(target.get(), y * 0.5) < tolerance(ops)
-    s, change = device(np.zeros(1001)), device(np.zeros(1001))
-    vectors.pair_difference(device(x), device(y), device(z), device(w), s, change)
-    assert relative_error(s.get(), x - y) < tolerance(ops) and relative_error(change.get(), z - w) < tolerance(ops)
-    vectors.copy(device(z), out)
-    np.testing.assert_array_equal(out.get(), z.astype(vectors.real))
+    device_s, device_y = device(s_ring), device(y_ring)
+    scalars = vectors.scalars(2 + lbfgs_device.pair_sum(3, 0))
+    vectors.pair_dots(device(x), device(y), device(z), device(w), device_s, device_y, 1, [2, 0],
+                      vectors.pair_partials(3), scalars, 2)
+    step, change = x - y, z - w
+    s_ring[1], y_ring[1] = step, change
+    assert relative_error(device_s.get(), s_ring.ravel()) < tolerance(ops)
+    assert relative_error(device_y.get(), y_ring.ravel()) < tolerance(ops)
+    sums = scalars.get()
+    expected = {0: (z, z), 1: (step, change), 2: (change, change), 3: (step, z), 4: (change, z)}
+    for slot in (0, 2):
+        pairs = ((s_ring[slot], z), (y_ring[slot], z), (s_ring[slot], change), (y_ring[slot], change))
+        expected.update({lbfgs_device.pair_sum(slot, which): pair for which, pair in enumerate(pairs)})
+    for k, (a, b) in expected.items():
+        assert close(sums[2 + k], a @ b, np.sum(np.abs(a * b))), k
+    untouched = [0, 1] + [2 + lbfgs_device.pair_sum(1, which) for which in range(4)]
+    np.testing.assert_array_equal(sums[untouched], 0.0)
+    coefficients = np.array([0.5, -1.25, 0.75, 3.0, -2.0, 0.25, 1.5])  # slot 1's (3.0, −2.0) not stored
+    trial = device(np.zeros(1001))
+    vectors.direction(device(z), device_s, device_y, [0, 2], device(coefficients), device(x), -0.375, out, trial)
+    expected_direction = 0.5 * z - 1.25 * s_ring[0] + 0.75 * y_ring[0] + 0.25 * s_ring[2] + 1.5 * y_ring[2]
+    assert relative_error(out.get(), expected_direction) < tolerance(ops)
+    assert relative_error(trial.get(), x - 0.375 * expected_direction) < tolerance(ops)
 
 
 # ------------------------------------------------------------- device L-BFGS
@@ -203,8 +209,9 @@ def small_hinge(seed: int):
 
 @pytest.mark.parametrize("implementation_name", ["pocl-float64", "intel-float64"])
 def test_device_lbfgs_takes_the_host_iterates_in_float64(implementation_name):
-    """lbfgs_device.minimise and lbfgs.minimise on the hinge of a small field, 3 pairs kept (the ring
-    drops pairs): the same iterates to 1e−9 of the field, the same number of iterations."""
+    """lbfgs_device.minimise (the compact representation) and lbfgs.minimise (the two-loop recursion) on the
+    hinge of a small field, 3 pairs kept (the ring drops pairs): the same iterates to 1e−9 of the field, the
+    same number of iterations."""
     kernels = FieldKernels(SMALL, device=implementation_device(implementation_name.split("-")[0]), double=True)
     ops = LevelKernels(kernels)
     start, levels = small_hinge(12)
@@ -234,6 +241,46 @@ def test_device_lbfgs_takes_the_host_iterates_in_float64(implementation_name):
     for host_x, device_x in zip(host_iterates, device_iterates):
         assert relative_error(device_x, host_x) < 1e-9
     assert host_loss(host_iterates[-1])[0] < 0.1 * host_loss(start)[0]
+
+
+def double_well(x: np.ndarray) -> tuple[float, np.ndarray]:
+    """f(x) = ¼·Σ(x_i² − 1)² + 0.05·Σ(x_{i+1} − x_i)² and its gradient: negative curvature near 0."""
+    difference = np.diff(x)
+    gradient = x * (x * x - 1)
+    gradient[:-1] -= 0.1 * difference
+    gradient[1:] += 0.1 * difference
+    return 0.25 * float(np.sum((x * x - 1) ** 2)) + 0.05 * float(difference @ difference), gradient
+
+
+@pytest.mark.parametrize("implementation_name", ["pocl-float64", "intel-float64"])
+def test_device_lbfgs_skips_the_pairs_the_host_skips(implementation_name):
+    """From near the double well's maximum the first steps have ⟨s, y⟩ < 0 (the host stores none of those
+    pairs), the later ones ⟨s, y⟩ > 0 with 3 pairs kept: the device takes the host's iterates to 1e−9 over
+    1001 reals (the loss evaluated on the host)."""
+    import pyopencl as cl
+    import pyopencl.array as cl_array
+
+    kernels = FieldKernels(SMALL, device=implementation_device(implementation_name.split("-")[0]), double=True)
+    vectors = LevelKernels(kernels).vectors
+    start = 0.05 * np.random.default_rng(15).normal(size=1001)
+
+    def device_loss(x, gradient, scalars, slot):
+        loss, host_gradient = double_well(x.get())
+        gradient.set(host_gradient)
+        cl.enqueue_copy(kernels.queue, scalars.data, np.array([loss]), dst_offset=8 * slot)
+
+    host_iterates, device_iterates = [], []
+    _, host_taken = lbfgs.minimise(double_well, start, 25, memory=3,
+                                   callback=lambda x: host_iterates.append(x.copy()))
+    _, device_taken = lbfgs_device.minimise(vectors, device_loss, cl_array.to_device(kernels.queue, start), 25,
+                                            memory=3, callback=lambda x: device_iterates.append(x.get()))
+    assert device_taken == host_taken == 25
+    points = [start] + host_iterates
+    curvatures = [(after - before) @ (double_well(after)[1] - double_well(before)[1])
+                  for before, after in zip(points, points[1:])]
+    assert sum(curvature <= 0 for curvature in curvatures) >= 5 and sum(curvature > 0 for curvature in curvatures) >= 5
+    for host_x, device_x in zip(host_iterates, device_iterates):
+        assert relative_error(device_x, host_x) < 1e-9
 
 
 # ------------------------------------------------------------ the device steps
