@@ -643,33 +643,9 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         holds the best phantom scored so far (or nothing, if the budget ran
         out before stage 2), not the schedule's result.
     """
-    from octcl._scanner_op import ScannerKernels
-
     started = time.monotonic() if started is None else started
-    if not (isinstance(time_budget_s, (int, float)) and time_budget_s > 0 and math.isfinite(time_budget_s)):
-        raise ValueError(f"time_budget_s must be a positive number of seconds, got {time_budget_s!r}")
-    for label, count in (("threads", threads), ("field_iterations", field_iterations)):
-        if count is not None and not (isinstance(count, int) and count >= 1):
-            raise ValueError(f"{label} must be a whole number ≥ 1, got {count!r}")
-    check_regime(regime)
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    field_iterations = FIELD_ITERATIONS[regime] if field_iterations is None else field_iterations
-    if field_schedule is not None:
-        from .field_solve import FieldSchedule
-
-        if regime != "linear":
-            raise ValueError("a stage-1 schedule of named steps is the linear regime's; the physical regime's "
-                             "stage 1 is field_iterations display steps")
-        field_schedule = field_schedule if isinstance(field_schedule, FieldSchedule) \
-            else FieldSchedule.parse(field_schedule)
-    schedule = default_schedule(regime) if schedule is None else schedule
-    check_target_score(target_score)  # before the work starts, as the other arguments
-    fixed = iterations is not None
-    if fixed:
-        schedule = schedule.truncated(iterations)
-        threads = FIXED_THREADS if threads is None else threads
-    deadline, reserve_s = started + time_budget_s, final_reserve_s(time_budget_s)
+    plan = _Plan.checked(time_budget_s, regime, backend, schedule, iterations, field_iterations, field_schedule,
+                         threads, target_score)
     # A bad output path fails now, not after the budget is spent.
     output_path = check_output_path(output_path)
     if report_path is not None:
@@ -680,107 +656,179 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     else:
         name = "target" if name is None else name
         target = check_target(target, config, name)
-    seconds, trace = {}, []
-
-    def elapsed():
-        return time.monotonic() - started
-
-    tell = _ProgressReporter(progress, started, deadline - reserve_s)
-    field_budget = None if fixed else field_budget_s(regime, time_budget_s, elapsed())
-    # In a fixed schedule the budget is only a safety ceiling, checked at
-    # every step; in deadline mode the stages fit themselves inside it.
-    ceiling = _Clock(None, deadline - reserve_s if fixed else None)
-    writer = None
-
-    def field_step(iteration, steps, loss):
-        ceiling.check_ceiling(f"in stage 1 after {iteration} of {steps} iterations")
-        tell("field", iteration, steps)
-
+    run = _Run(plan, target, config, output_path, started, time_budget_s, seed, progress)
     try:
-        tell("field", 0, 0)
-        exact_score = _LazyExactScore(target, config)
-        field_kernels = None
-        if backend == "opencl":
-            from .field_kernels import FieldKernels
-
-            field_kernels = FieldKernels(config)
-        first = _STARTS[regime](target_scan(target), config, schedule, field_iterations, field_schedule, field_budget,
-                                threads, seed, field_step, tell, exact_score, field_kernels)
-        seconds.update(first.seconds)
-        trace.append({"time_s": elapsed(), "stage": "field", "iteration": first.field_iterations,
-                      "loss": first.field_loss, "score": None})
-        phantom = first.phantom
-        writer = _CheckpointWriter(output_path, config, CHECKPOINT_INTERVAL_S)
-        writer.write_now(phantom)
-
-        tell("setup", 0, 1)
-        start = time.monotonic()
-        kernels = ScannerKernels(config)
-        seconds["setup"] = time.monotonic() - start
-        ceiling.check_ceiling("before stage 3")
-        offset = elapsed()
-        result = refine(phantom, target, first.schedule, deadline=None if fixed else deadline - reserve_s,
-                        kernels=kernels, config=config, progress=tell.refine, exact_score=exact_score,
-                        on_improvement=lambda improved, components: writer.offer(improved),
-                        ceiling=ceiling.ceiling if fixed else None, threads=threads,
-                        target_score=target_score, aim=first.aim)
+        first = run.start()
+        run.write_first(first.phantom)
+        result = run.refine(first, target_score)
     except TimeBudgetExceeded as exc:
-        if writer is not None:
-            writer.close()
         holds = f"{output_path} holds the best phantom scored so far, not the schedule's result" \
-            if writer is not None and writer.writes else f"nothing was written to {output_path}"
+            if run.writer is not None and run.writer.writes else f"nothing was written to {output_path}"
         raise TimeBudgetExceeded(
-            f"{name}: a fixed schedule ({field_iterations} + {schedule.total_iterations} iterations) did not fit "
-            f"the time budget of {time_budget_s:g} s ({exc}); give a larger budget. {holds}") from None
+            f"{name}: a fixed schedule ({plan.field_iterations} + {plan.schedule.total_iterations} iterations) did "
+            f"not fit the time budget of {time_budget_s:g} s ({exc}); give a larger budget. {holds}") from None
     finally:
-        if writer is not None:
-            writer.close()  # writes the best phantom if the interval held it back
-    seconds["refine"] = elapsed() - offset
-    seconds["checkpoint_writes"] = writer.seconds
-    seconds["written"] = writer.last_write - started
-    trace += [{**entry, "time_s": entry["time_s"] + offset} for entry in result.trace]
-    seconds["total"] = elapsed()
-    tell("done", result.iterations, schedule.total_iterations, done=True)
-    # After the last write, so that it takes nothing from the budget: the ceiling of the target (up to two
-    # exact scores, none for a target the scanner could have written) and where the phantom stands under it
-    # (the levels its score was computed from).
-    levels = exact_score.levels
-    ceiling = measure_ceiling(levels, lambda image: exact_score(image)["mean"])
-    rendered = result.levels
-
-    outcome = InvertResult(
-        target=name, output=str(output_path), score=result.components["mean"],
-        components=result.components, initial_score=result.initial_components["mean"],
-        scatterers=len(result.phantom), iterations=result.iterations, seconds=seconds,
-        checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
-        stopped_by_deadline=result.stopped_by_deadline, stop_reason=result.stop_reason,
-        falls=result.falls, seed=seed, field_iterations=first.field_iterations, regime=regime,
-        fixed_schedule=fixed, threads=threads,
-        reproduce=f"--regime {regime} --backend {backend} --seed {seed} --iterations {result.iterations} "
-                  + (f"--field-iterations {first.field_iterations} " if field_schedule is None
-                     else f"--field-schedule {field_schedule} ")
-                  + f"--threads {FIXED_THREADS if threads is None else threads}",
-        reproducible=first.clock_steps == 0 and not result.stopped_by_deadline,
-        ceiling=ceiling.as_dict(), exact_share=float(np.mean(rendered == levels)),
-        avoidable_share=float(np.mean(WRITABLE[levels] & (rendered != levels))))
+        if run.writer is not None:
+            run.writer.close()  # writes the best phantom if the interval held it back
+    outcome, settings = run.outcome(name, first, result)
     if report_path is not None:
-        contents = {
-            **outcome.as_dict(),
-            "initial_components": result.initial_components,
-            "settings": {"time_budget_s": time_budget_s, "field_budget_s": field_budget,
-                         "field_iterations_planned": field_iterations, "field_threads": first.threads,
-                         "field_backend": backend,
-                         "field_clock_steps": first.clock_steps, "field_candidates": first.candidates,
-                         "refine_threads": result.torch_threads,
-                         "schedule": dataclasses.asdict(first.schedule), "config": dataclasses.asdict(config),
-                         "checkpoint_interval_s": CHECKPOINT_INTERVAL_S, "target_score": target_score},
-            "refine_timings_s": result.timings_s,
-            "refine_cpu_s": result.cpu_s,
-            "trace": trace,
-        }
+        contents = {**outcome.as_dict(), "initial_components": result.initial_components,
+                    "settings": {**settings, "config": dataclasses.asdict(config), "target_score": target_score},
+                    "refine_timings_s": result.timings_s, "refine_cpu_s": result.cpu_s, "trace": run.trace}
         with atomic_write(report_path, "w") as handle:
             json.dump(contents, handle, indent=1, default=float)
     return outcome
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What :func:`invert` was asked to run, checked and completed with its defaults."""
+
+    regime: str
+    backend: str
+    schedule: RefineSchedule      # stage 3's, truncated to ``iterations`` in a fixed schedule
+    field_iterations: int
+    field_schedule: object        # FieldSchedule or None
+    threads: int | None
+    fixed: bool                   # ``iterations`` given: no decision from the clock
+
+    @classmethod
+    def checked(cls, time_budget_s, regime, backend, schedule, iterations, field_iterations, field_schedule, threads,
+                target_score) -> "_Plan":
+        """Every argument checked before any work (:func:`invert`'s Raises)."""
+        if not (isinstance(time_budget_s, (int, float)) and time_budget_s > 0 and math.isfinite(time_budget_s)):
+            raise ValueError(f"time_budget_s must be a positive number of seconds, got {time_budget_s!r}")
+        for label, count in (("threads", threads), ("field_iterations", field_iterations)):
+            if count is not None and not (isinstance(count, int) and count >= 1):
+                raise ValueError(f"{label} must be a whole number ≥ 1, got {count!r}")
+        check_regime(regime)
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+        if field_schedule is not None:
+            from .field_solve import FieldSchedule
+
+            if regime != "linear":
+                raise ValueError("a stage-1 schedule of named steps is the linear regime's; the physical regime's "
+                                 "stage 1 is field_iterations display steps")
+            field_schedule = field_schedule if isinstance(field_schedule, FieldSchedule) \
+                else FieldSchedule.parse(field_schedule)
+        schedule = default_schedule(regime) if schedule is None else schedule
+        check_target_score(target_score)
+        fixed = iterations is not None
+        if fixed:
+            schedule = schedule.truncated(iterations)
+            threads = FIXED_THREADS if threads is None else threads
+        return cls(regime, backend, schedule, FIELD_ITERATIONS[regime] if field_iterations is None else field_iterations,
+                   field_schedule, threads, fixed)
+
+    def reproduce(self, seed: int, iterations: int, field_iterations: int) -> str:
+        """The options that run this schedule again (:attr:`InvertResult.reproduce`)."""
+        return (f"--regime {self.regime} --backend {self.backend} --seed {seed} --iterations {iterations} "
+                + (f"--field-iterations {field_iterations} " if self.field_schedule is None
+                   else f"--field-schedule {self.field_schedule} ")
+                + f"--threads {FIXED_THREADS if self.threads is None else self.threads}")
+
+
+class _Run:
+    """One :func:`invert` run's state: its clock, progress, output, timings and trace, and its stages as steps.
+
+    In a fixed schedule the budget is only a safety ceiling, checked at
+    every step; in deadline mode the stages fit themselves inside it.
+    """
+
+    def __init__(self, plan: _Plan, target, config: ScannerConfig, output_path, started: float, time_budget_s: float,
+                 seed: int, progress):
+        self.plan, self.target, self.config, self.output_path = plan, target, config, output_path
+        self.started, self.time_budget_s, self.seed = started, time_budget_s, seed
+        self.deadline = started + time_budget_s - final_reserve_s(time_budget_s)
+        self.tell = _ProgressReporter(progress, started, self.deadline)
+        self.field_budget = None if plan.fixed else field_budget_s(plan.regime, time_budget_s, self.elapsed())
+        self.ceiling = _Clock(None, self.deadline if plan.fixed else None)
+        self.writer, self.seconds, self.trace, self.offset = None, {}, [], 0.0
+        self.exact_score = _LazyExactScore(target, config)
+
+    def elapsed(self) -> float:
+        return time.monotonic() - self.started
+
+    def start(self) -> _Start:
+        """Stages 1–2 of the plan's regime (:data:`_STARTS`), stage 1 on the plan's backend."""
+        plan = self.plan
+
+        def field_step(iteration, steps, loss):
+            self.ceiling.check_ceiling(f"in stage 1 after {iteration} of {steps} iterations")
+            self.tell("field", iteration, steps)
+
+        self.tell("field", 0, 0)
+        field_kernels = None
+        if plan.backend == "opencl":
+            from .field_kernels import FieldKernels
+
+            field_kernels = FieldKernels(self.config)
+        first = _STARTS[plan.regime](target_scan(self.target), self.config, plan.schedule, plan.field_iterations,
+                                     plan.field_schedule, self.field_budget, plan.threads, self.seed, field_step,
+                                     self.tell, self.exact_score, field_kernels)
+        self.seconds.update(first.seconds)
+        self.trace.append({"time_s": self.elapsed(), "stage": "field", "iteration": first.field_iterations,
+                           "loss": first.field_loss, "score": None})
+        return first
+
+    def write_first(self, phantom) -> None:
+        """The first phantom into the output, at once: from here on the output always holds a complete one."""
+        self.writer = _CheckpointWriter(self.output_path, self.config, CHECKPOINT_INTERVAL_S)
+        self.writer.write_now(phantom)
+
+    def refine(self, first: _Start, target_score):
+        """Stage 3 (:func:`octcl.host.refine.refine`) from the first phantom, each improvement offered to the writer."""
+        from octcl._scanner_op import ScannerKernels
+
+        self.tell("setup", 0, 1)
+        start = time.monotonic()
+        kernels = ScannerKernels(self.config)
+        self.seconds["setup"] = time.monotonic() - start
+        self.ceiling.check_ceiling("before stage 3")
+        self.offset = self.elapsed()
+        fixed = self.plan.fixed
+        return refine(first.phantom, self.target, first.schedule, deadline=None if fixed else self.deadline,
+                      kernels=kernels, config=self.config, progress=self.tell.refine, exact_score=self.exact_score,
+                      on_improvement=lambda improved, components: self.writer.offer(improved),
+                      ceiling=self.ceiling.ceiling if fixed else None, threads=self.plan.threads,
+                      target_score=target_score, aim=first.aim)
+
+    def outcome(self, name: str, first: _Start, result) -> tuple[InvertResult, dict]:
+        """The result and the report's settings, after the last write.
+
+        The ceiling of the target (up to two exact scores, none for a target
+        the scanner could have written) and where the phantom stands under
+        it (the levels its score was computed from) come after the last
+        write, so that they take nothing from the budget.
+        """
+        plan, seconds, writer = self.plan, self.seconds, self.writer
+        seconds["refine"] = self.elapsed() - self.offset
+        seconds["checkpoint_writes"] = writer.seconds
+        seconds["written"] = writer.last_write - self.started
+        self.trace += [{**entry, "time_s": entry["time_s"] + self.offset} for entry in result.trace]
+        seconds["total"] = self.elapsed()
+        self.tell("done", result.iterations, plan.schedule.total_iterations, done=True)
+        levels, rendered = self.exact_score.levels, result.levels
+        ceiling = measure_ceiling(levels, lambda image: self.exact_score(image)["mean"])
+        outcome = InvertResult(
+            target=name, output=str(self.output_path), score=result.components["mean"],
+            components=result.components, initial_score=result.initial_components["mean"],
+            scatterers=len(result.phantom), iterations=result.iterations, seconds=seconds,
+            checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
+            stopped_by_deadline=result.stopped_by_deadline, stop_reason=result.stop_reason,
+            falls=result.falls, seed=self.seed, field_iterations=first.field_iterations, regime=plan.regime,
+            fixed_schedule=plan.fixed, threads=plan.threads,
+            reproduce=plan.reproduce(self.seed, result.iterations, first.field_iterations),
+            reproducible=first.clock_steps == 0 and not result.stopped_by_deadline,
+            ceiling=ceiling.as_dict(), exact_share=float(np.mean(rendered == levels)),
+            avoidable_share=float(np.mean(WRITABLE[levels] & (rendered != levels))))
+        settings = {"time_budget_s": self.time_budget_s, "field_budget_s": self.field_budget,
+                    "field_iterations_planned": plan.field_iterations, "field_threads": first.threads,
+                    "field_backend": plan.backend, "field_clock_steps": first.clock_steps,
+                    "field_candidates": first.candidates, "refine_threads": result.torch_threads,
+                    "schedule": dataclasses.asdict(first.schedule), "checkpoint_interval_s": CHECKPOINT_INTERVAL_S}
+        return outcome, settings
 
 
 __all__ = ["BACKENDS", "CHECKPOINT_INTERVAL_S", "FIELD_ITERATIONS", "FIXED_THREADS", "InvertProgress", "InvertResult",
