@@ -97,7 +97,8 @@ class DisplayFitKernels:
         start = np.exp(np.asarray(log_magnitude, dtype=real)) * (np.cos(phase) + 1j * np.sin(phase))
         self.field = ops.to_device(start.astype(ops.complex))
         self.a_scans, self.a_scan_grad, self.field_grad = ops.empty(), ops.empty(), ops.empty()
-        self.display = zeros(self.log_magnitude.shape, real)
+        self.clamped = zeros(self.log_magnitude.shape, real)
+        self.passes = zeros(self.log_magnitude.shape, np.int8)
         self.residual_sign = zeros(self.log_magnitude.shape, real)
         self.display_grad = zeros(self.log_magnitude.shape, real)
         self.partial_power, self.partial_index = zeros(self.partials, real), zeros(self.partials, np.int32)
@@ -118,10 +119,11 @@ class DisplayFitKernels:
         k["finish_peak"](queue, local, local, self.partial_power.data, self.partial_index.data,
                          self.partial_energy.data, self.stats.data, self.brightest.data)
         k["display_error"](queue, (pixels,), local, self.a_scans.data, self.stats.data, self.brightest.data,
-                           self.goal_display.data, self.visible.data, self.display.data, self.partial_error.data)
-        k["high_pass_residual"](queue, (pixels,), local, self.display.data, self.visible.data,
-                                self.goal_high_pass.data, self.residual_sign.data, self.partial_residual.data)
-        k["display_gradient"](queue, (pixels,), local, self.display.data, self.visible.data, self.goal_display.data,
+                           self.goal_display.data, self.visible.data, self.clamped.data, self.passes.data,
+                           self.partial_error.data)
+        k["high_pass_residual"](queue, (pixels,), local, self.clamped.data, self.goal_high_pass.data,
+                                self.residual_sign.data, self.partial_residual.data)
+        k["display_gradient"](queue, (pixels,), local, self.clamped.data, self.passes.data, self.goal_display.data,
                               self.residual_sign.data, self.display_grad.data, self.partial_display_grad.data)
         k["finish_loss"](queue, local, local, self.partial_error.data, self.partial_residual.data,
                          self.partial_display_grad.data, self.stats.data, self.loss_history.data,

@@ -99,7 +99,7 @@ class FieldKernels:
         inverse = self.twin.inverse_transfer(regularisation).real / (nz * self.twin.padded_columns)
         self._window = self._upload(window, self.real)
         self._taps = self._upload(self.twin.taps, self.real)
-        self._twiddle = self._upload(np.exp(-2j * np.pi * np.arange(twiddle_n // 2) / twiddle_n), self.complex)
+        self._twiddle = self._upload(np.exp(-2j * np.pi * np.arange(twiddle_n) / twiddle_n), self.complex)
         self._filter = self._upload(inverse, self.real)
         self._scratch = self.empty()
 

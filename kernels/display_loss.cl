@@ -145,11 +145,12 @@ void finish_peak(__global const real *partial_power, __global const int *partial
     }
 }
 
-/* The display D of each pixel (unclamped, kept for the gradient's clamp test) and Σ(|e| + e²) per work-group. */
+/* D̃ of each pixel, whether its clamp passes the gradient (D at or above the bound), and Σ(|e| + e²) per
+ * work-group. */
 __kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
 void display_error(__global const complex_t *a_scans, __global const real *stats, __global const int *brightest,
                    __global const real *goal_display, __global const char *visible,
-                   __global real *display, __global real *partial_error) {
+                   __global real *clamped, __global char *passes, __global real *partial_error) {
     __local real scratch[RWG_SIZE];
     const real peak = stats[STAT_PEAK], shift = (real)1e-24 * peak;
     const complex_t a_m = a_scans[brightest[0]];
@@ -158,35 +159,35 @@ void display_error(__global const complex_t *a_scans, __global const real *stats
     for (int e = get_global_id(0); e < PIXELS; e += PASS_SIZE) {
         const complex_t a = a_scans[e];
         const real d = 1 + (real)DISPLAY_SLOPE * (real)0.5 * (log(dot(a, a) + shift) - log_peak);
-        display[e] = d;
-        const real error = fmax(d, visible[e] ? (real)FLOOR_VISIBLE : (real)0) - goal_display[e];
+        const real floor_value = visible[e] ? (real)FLOOR_VISIBLE : (real)0;
+        const real d_clamped = fmax(d, floor_value), error = d_clamped - goal_display[e];
+        clamped[e] = d_clamped;
+        passes[e] = d >= floor_value;
         term += fabs(error) + error * error;
     }
     const real sum = group_sum(scratch, term);
     if (get_local_id(0) == 0) partial_error[get_group_id(0)] = sum;
 }
 
-/* D̃ of pixel (n, i), its indices clamped into the image (the edge replicated). */
-static inline real clamped_display(__global const real *display, __global const char *visible, int n, int i) {
-    n = clamp(n, 0, NZ - 1);
-    i = clamp(i, 0, NX - 1);
-    const int e = i * NZ + n;
-    return fmax(display[e], visible[e] ? (real)FLOOR_VISIBLE : (real)0);
+/* box3 of an image at pixel (n, i): its 3×3 neighbours' mean, the indices clamped into the image (the edge
+ * replicated). */
+static inline real box3(__global const real *image, int n, int i) {
+    real sum = 0;
+    for (int di = -1; di <= 1; ++di) {
+        const int column = clamp(i + di, 0, NX - 1) * NZ;
+        for (int dn = -1; dn <= 1; ++dn) sum += image[column + clamp(n + dn, 0, NZ - 1)];
+    }
+    return sum / 9;
 }
 
 /* sgn r, r = hp(D̃) − hp(D*), and Σ|r| per work-group. */
 __kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
-void high_pass_residual(__global const real *display, __global const char *visible,
-                        __global const real *goal_high_pass, __global real *residual_sign,
-                        __global real *partial_residual) {
+void high_pass_residual(__global const real *clamped, __global const real *goal_high_pass,
+                        __global real *residual_sign, __global real *partial_residual) {
     __local real scratch[RWG_SIZE];
     real term = 0;
     for (int e = get_global_id(0); e < PIXELS; e += PASS_SIZE) {
-        const int n = e % NZ, i = e / NZ;
-        real box = 0;
-        for (int di = -1; di <= 1; ++di)
-            for (int dn = -1; dn <= 1; ++dn) box += clamped_display(display, visible, n + dn, i + di);
-        const real residual = clamped_display(display, visible, n, i) - box / 9 - goal_high_pass[e];
+        const real residual = clamped[e] - box3(clamped, e % NZ, e / NZ) - goal_high_pass[e];
         residual_sign[e] = sign(residual);
         term += fabs(residual);
     }
@@ -196,21 +197,17 @@ void high_pass_residual(__global const real *display, __global const char *visib
 
 /* ∂L/∂D (zero where a clamp holds D̃ at its bound) and its Σ per work-group. */
 __kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
-void display_gradient(__global const real *display, __global const char *visible,
+void display_gradient(__global const real *clamped, __global const char *passes,
                       __global const real *goal_display, __global const real *residual_sign,
                       __global real *display_grad, __global real *partial_display_grad) {
     __local real scratch[RWG_SIZE];
     real total = 0;
     for (int e = get_global_id(0); e < PIXELS; e += PASS_SIZE) {
-        const int n = e % NZ, i = e / NZ;
-        real box = 0;
-        for (int di = -1; di <= 1; ++di)
-            for (int dn = -1; dn <= 1; ++dn)
-                box += residual_sign[clamp(i + di, 0, NX - 1) * NZ + clamp(n + dn, 0, NZ - 1)];
-        const real floor_value = visible[e] ? (real)FLOOR_VISIBLE : (real)0;
-        const real d = display[e], error = fmax(d, floor_value) - goal_display[e];
-        const real d_clamped = (sign(error) + 2 * error + (real)HIGH_PASS_WEIGHT * (residual_sign[e] - box / 9)) / PIXELS;
-        const real d_display = d >= floor_value ? d_clamped : 0;
+        const real error = clamped[e] - goal_display[e];
+        const real d_clamped = (sign(error) + 2 * error
+                                + (real)HIGH_PASS_WEIGHT * (residual_sign[e] - box3(residual_sign, e % NZ, e / NZ)))
+                               / PIXELS;
+        const real d_display = passes[e] ? d_clamped : 0;
         display_grad[e] = d_display;
         total += d_display;
     }

@@ -20,15 +20,17 @@
  *   frequency, then depth_fft inverse. The filter comes from the host
  *   with both transforms' normalisation in it.
  *
- * FFTs are radix-2 Stockham autosort transforms in local memory
+ * FFTs are Stockham autosort transforms in local memory
  * (Govindaraju et al., "High performance discrete Fourier transforms on
- * graphics processors", SC 2008): each stage reads x[j] and x[j + n/2]
+ * graphics processors", SC 2008): each stage reads x[j + r·n/R] (r < R)
  * and writes runs of Ns, ping-ponging between two local arrays, so no
- * bit-reversal pass and contiguous reads. The scanner's fft_local
- * (kernels/scanner.cl) works in place with a bit-reversal pass on one
- * array; this one needs the second array, which the field's work-groups
- * have room for. twiddle[k] = exp(−2πi·k/TWIDDLE_N), k < TWIDDLE_N/2,
- * from the host in float64; a shorter transform strides through it.
+ * bit-reversal pass and contiguous reads; radix 4 (and one radix-2 stage
+ * for an odd power of two), so a 256-point transform takes 4 stages and 4
+ * barriers. The scanner's fft_local (kernels/scanner.cl) works in place
+ * with a bit-reversal pass on one array; this one needs the second array,
+ * which the field's work-groups have room for. twiddle[k] =
+ * exp(−2πi·k/TWIDDLE_N), k < TWIDDLE_N, from the host in float64; a
+ * shorter transform strides through it.
  *
  * Defines: NZ, LOG2_NZ, NX, REACH, PADDED, LOG2_PADDED, TWIDDLE_N, WG_SIZE;
  * OCTCL_DOUBLE for float64.
@@ -47,26 +49,62 @@ static inline complex_t cmul(complex_t a, complex_t b) {
     return (complex_t)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
 }
 
+/* x·exp(sign·2πi·k/TWIDDLE_N) from the table twiddle[k] = exp(−2πi·k/TWIDDLE_N), k < TWIDDLE_N. */
+static inline complex_t twiddled(complex_t x, int k, int sign, __global const complex_t *twiddle) {
+    complex_t w = twiddle[k];
+    w.y = sign < 0 ? w.y : -w.y;
+    return cmul(w, x);
+}
+
+/* ±i·x: the quarter turn of a radix-4 butterfly, exp(sign·iπ/2)·x. */
+static inline complex_t quarter_turn(complex_t x, int sign) {
+    return sign < 0 ? (complex_t)(x.y, -x.x) : (complex_t)(-x.y, x.x);
+}
+
 /* x ← Σ_n x[n]·exp(sign·2πi·k·n/len), len = 1 << log2n, with y as scratch;
- * returns the array holding the result (x or y). Call with every work-item
- * of the group; returns after a barrier. */
+ * returns the array holding the result (x or y). Radix-4 stages while the
+ * length allows, one radix-2 stage last for an odd log2n: a stage of
+ * radix R with span Ns reads x[j + r·len/R] (r < R) for each of the len/R
+ * butterflies j, turns input r by exp(sign·2πi·r·(j mod Ns)/(Ns·R)),
+ * transforms the R values and writes them to y[(j − j mod Ns)·R + j mod Ns
+ * + r·Ns]. Call with every work-item of the group; returns after a
+ * barrier. */
 static __local complex_t *fft_stockham(__local complex_t *x, __local complex_t *y, int log2n, int sign,
                                        __global const complex_t *twiddle) {
-    const int n = 1 << log2n, middle = n >> 1, lid = get_local_id(0);
-    for (int span = 1, stride = TWIDDLE_N >> 1; span < n; span <<= 1, stride >>= 1) {
-        for (int j = lid; j < middle; j += WG_SIZE) {
+    const int n = 1 << log2n, lid = get_local_id(0);
+    int span = 1;
+    for (; span * 4 <= n; span *= 4) {
+        const int quarter = n >> 2, stride = TWIDDLE_N / (4 * span);
+        for (int j = lid; j < quarter; j += WG_SIZE) {
             const int k = j & (span - 1);
-            complex_t w = twiddle[k * stride];
-            w.y = sign < 0 ? w.y : -w.y;
-            const complex_t top = x[j], bottom = cmul(w, x[j + middle]);
-            const int out = ((j - k) << 1) + k;
-            y[out] = top + bottom;
-            y[out + span] = top - bottom;
+            const complex_t v0 = x[j];
+            const complex_t v1 = twiddled(x[j + quarter], k * stride, sign, twiddle);
+            const complex_t v2 = twiddled(x[j + 2 * quarter], 2 * k * stride, sign, twiddle);
+            const complex_t v3 = twiddled(x[j + 3 * quarter], 3 * k * stride, sign, twiddle);
+            const complex_t even = v0 + v2, odd = v1 + v3;
+            const complex_t even_difference = v0 - v2, odd_difference = quarter_turn(v1 - v3, sign);
+            const int out = ((j - k) << 2) + k;
+            y[out] = even + odd;
+            y[out + span] = even_difference + odd_difference;
+            y[out + 2 * span] = even - odd;
+            y[out + 3 * span] = even_difference - odd_difference;
         }
         barrier(CLK_LOCAL_MEM_FENCE);
         __local complex_t *swap = x;
         x = y;
         y = swap;
+    }
+    if (span < n) { /* log2n odd: one radix-2 stage */
+        const int middle = n >> 1, stride = TWIDDLE_N / (2 * span);
+        for (int j = lid; j < middle; j += WG_SIZE) {
+            const int k = j & (span - 1);
+            const complex_t top = x[j], bottom = twiddled(x[j + middle], k * stride, sign, twiddle);
+            const int out = ((j - k) << 1) + k;
+            y[out] = top + bottom;
+            y[out + span] = top - bottom;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        x = y;
     }
     return x;
 }
