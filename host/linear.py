@@ -371,21 +371,31 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
         residual = a_scans - _project(a_scans, lower, upper)
         return 0.5 * float(np.vdot(residual, residual).real), operator.adjoint(residual)
 
-    clock_steps, taken = 0, 0
+    stop = LevelStop(aim, lambda field_now: Rendering.from_a_scans(operator.apply(field_now)).levels, start,
+                     time_budget_s)
+    found, _ = lbfgs.minimise(loss_and_gradient, field, iterations, memory=LEVEL_FIT_MEMORY, callback=stop)
+    return _normalised_fit(operator, found, aim, stop.taken, time.perf_counter() - start, stop.clock_steps)
 
-    def stop_when_done(field_now):
-        """Every :data:`LEVEL_CHECK_EVERY` iterations: stop once every pixel renders at its aimed level."""
-        nonlocal clock_steps, taken
-        taken += 1
-        if time_budget_s is not None and time.perf_counter() - start > time_budget_s:
-            clock_steps = 1
+
+class LevelStop:
+    """The hinge fit's L-BFGS callback: counts the iterations, and ends the fit past its time budget or once
+    every pixel renders at its aimed level, checked every :data:`LEVEL_CHECK_EVERY` iterations.
+
+    ``levels_of(field)`` gives a field's 8-bit rendering (on the host, or from a device's field).
+    ``clock_steps`` is 1 where the budget ended the fit.
+    """
+
+    def __init__(self, aim: np.ndarray, levels_of, start: float, time_budget_s: float | None):
+        self.aim, self.levels_of, self.start, self.time_budget_s = aim, levels_of, start, time_budget_s
+        self.taken = self.clock_steps = 0
+
+    def __call__(self, field_now) -> None:
+        self.taken += 1
+        if self.time_budget_s is not None and time.perf_counter() - self.start > self.time_budget_s:
+            self.clock_steps = 1
             raise StopIteration
-        if taken % LEVEL_CHECK_EVERY == 0:
-            if np.array_equal(Rendering.from_a_scans(operator.apply(field_now)).levels, aim):
-                raise StopIteration
-
-    found, _ = lbfgs.minimise(loss_and_gradient, field, iterations, memory=LEVEL_FIT_MEMORY, callback=stop_when_done)
-    return _normalised_fit(operator, found, aim, taken, time.perf_counter() - start, clock_steps)
+        if self.taken % LEVEL_CHECK_EVERY == 0 and np.array_equal(self.levels_of(field_now), self.aim):
+            raise StopIteration
 
 
 # ------------------------------------------------------------------- start
@@ -680,5 +690,5 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
 
 __all__ = ["DECODE_CORRECTIONS", "ENERGY_FLOOR_PCT", "INTERVAL_MARGIN", "LinearFit", "LinearStart",
            "LEVEL_FIT_ITERATIONS", "START_LENGTHS", "START_PROJECTIONS", "linear_start", "MOMENTUM", "RETRIEVAL_ITERATIONS",
-           "SHADOW_BOUND", "STEP", "decode_exact", "level_magnitude_bounds", "rendered_cells",
+           "SHADOW_BOUND", "STEP", "LevelStop", "decode_exact", "level_magnitude_bounds", "rendered_cells",
            "retrieve_field", "row_depths_um", "row_offsets_um", "split_on_carriers", "fit_levels"]

@@ -41,8 +41,8 @@ from .field import target_levels
 from .field_kernels import FieldKernels
 from .lbfgs_device import minimise
 from .level_kernels import LevelKernels
-from .linear import (INTERVAL_MARGIN, LEVEL_CHECK_EVERY, LEVEL_FIT_ITERATIONS, LEVEL_FIT_MEMORY, RETRIEVAL_ITERATIONS,
-                     LinearFit, _anchored_bounds, _normalised_fit, level_magnitude_bounds, regularised_start)
+from .linear import (INTERVAL_MARGIN, LEVEL_FIT_ITERATIONS, LEVEL_FIT_MEMORY, RETRIEVAL_ITERATIONS,
+                     LevelStop, LinearFit, _anchored_bounds, _normalised_fit, level_magnitude_bounds, regularised_start)
 
 #: Projection steps enqueued past the one the host waits for before reading the clock.
 PROJECTIONS_IN_FLIGHT = 2
@@ -160,22 +160,12 @@ def fit_levels_device(kernels: FieldKernels, field: np.ndarray, aim: np.ndarray,
         ops.hinge_residual(a_scans, lower, upper, a_scans, scalars, slot)
         kernels.adjoint(a_scans, out=gradient)
 
-    clock_steps, taken = 0, 0
-
-    def stop_when_done(field_now):
-        """Every :data:`LEVEL_CHECK_EVERY` iterations: stop once every pixel renders at its aimed level."""
-        nonlocal clock_steps, taken
-        taken += 1
-        if time_budget_s is not None and time.perf_counter() - start > time_budget_s:
-            clock_steps = 1
-            raise StopIteration
-        if taken % LEVEL_CHECK_EVERY == 0:
-            if np.array_equal(Rendering.from_a_scans(twin.apply(kernels.to_host(field_now))).levels, aim):
-                raise StopIteration
-
+    stop = LevelStop(aim, lambda field_now: Rendering.from_a_scans(twin.apply(kernels.to_host(field_now))).levels,
+                     start, time_budget_s)
     found, _ = minimise(ops.vectors, loss_and_gradient, kernels.to_device(field / scale), iterations,
-                        memory=LEVEL_FIT_MEMORY, callback=stop_when_done)
-    return _normalised_fit(twin, kernels.to_host(found), aim, taken, time.perf_counter() - start, clock_steps)
+                        memory=LEVEL_FIT_MEMORY, callback=stop)
+    return _normalised_fit(twin, kernels.to_host(found), aim, stop.taken, time.perf_counter() - start,
+                           stop.clock_steps)
 
 
 __all__ = ["PROGRESS_EVERY", "PROJECTIONS_IN_FLIGHT", "fit_levels_device", "retrieve_field_device"]
