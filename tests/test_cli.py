@@ -356,6 +356,12 @@ def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, official_
     assert (first["iterations"], first["field_iterations"], first["threads"]) == (0, 20, 1)
     assert first["stop_reason"] == "ceiling" and first["exact_share"] == 1.0 and first["score"] == 1.0
     assert first["reproduce"] == "--regime linear --backend opencl --seed 5 --iterations 0 --field-iterations 20 --threads 1"
+    # The reproduce options run the schedule again, the NumPy reference backend included.
+    status, out, _ = run(capsys, "invert", target, "-o", tmp_path / "numpy.txt", "--seed", 5, "--backend", "numpy",
+                         *schedule, "--quiet", "--json")
+    reference = json.loads(out)
+    assert status == 0 and reference["score"] == 1.0 and reference["exact_share"] == 1.0
+    assert reference["reproduce"] == first["reproduce"].replace("--backend opencl", "--backend numpy")
     # The target as an array (what a batch runner sends a worker): in the
     # linear regime nothing is drawn at random, so another seed gives the
     # same file; in the physical regime it draws other elevations in stage 2.
