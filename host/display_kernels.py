@@ -22,19 +22,17 @@ from .._runtime import build
 from ..render import DISPLAY_SLOPE
 from .adam import Adam
 from .field import DISPLAY_GRADIENT_FLOOR, HIGH_PASS_WEIGHT, DisplayGoal
-from .field_kernels import FieldKernels
+from .field_kernels import REDUCTION_WORK_GROUP, FieldKernels, reduction_work_group
 
-#: Work-items of the reduction work-groups (a power of two).
-REDUCTION_GROUP_SIZE = 64
 #: Work-groups of a pass over the pixels on a CPU device: each work-item then sums 32 pixels of a 256×512 scan
 #: in a loop (a CPU runs a work-group's barriers as loops over its work-items, so fewer, longer work-items pay
-#: fewer of them). A GPU gets a work-group per 8·REDUCTION_GROUP_SIZE pixels.
+#: fewer of them). A GPU gets a work-group per 8·REDUCTION_WORK_GROUP pixels.
 CPU_PASS_GROUPS = 64
 #: The device fit reads its losses back every this many steps (progress, and nothing else, needs them).
 LOSS_READ_EVERY = 25
 
 
-def program_defines(config, energy_weight: float, group_size: int = REDUCTION_GROUP_SIZE, cpu: bool = True) -> tuple:
+def program_defines(config, energy_weight: float, group_size: int = REDUCTION_WORK_GROUP, cpu: bool = True) -> tuple:
     """Compile-time constants of ``kernels/display_loss.cl`` and ``kernels/adam.cl`` (their headers)."""
     pixels = config.a_scans * config.depth_pixels
     groups = min(CPU_PASS_GROUPS, -(-pixels // group_size)) if cpu else -(-pixels // (8 * group_size))
@@ -68,9 +66,7 @@ class DisplayFitKernels:
 
         self.ops = ops = field_kernels
         config, queue = ops.config, ops.queue
-        group = REDUCTION_GROUP_SIZE
-        while group > ops.device.max_work_group_size:
-            group //= 2
+        group = reduction_work_group(ops.device)
         defines = program_defines(config, goal.energy_weight, group, bool(ops.device.type & cl.device_type.CPU))
         self.group_size, self.partials = group, dict(defines)["PARTIALS"]
         double = ops.real == np.float64
@@ -81,18 +77,15 @@ class DisplayFitKernels:
             "finish_loss", "a_scan_gradient")}
         self._adam = cl.Kernel(adam_program, "adam_polar_step")
 
-        def device(values, dtype):  # a host (Nz, Nx) image in the device's A-scan-major layout
-            return cl_array.to_device(queue, np.ascontiguousarray(np.asarray(values).T, dtype=dtype))
-
         def zeros(count, dtype):
             return cl_array.zeros(queue, count, dtype)
 
         real = ops.real
-        self.goal_display = device(goal.display, real)
-        self.goal_high_pass = device(goal.high_pass, real)
-        self.visible = device(goal.visible, np.int8)
-        self.log_magnitude = device(log_magnitude, real)
-        self.phase = device(phase, real)
+        self.goal_display = ops.image_to_device(goal.display, real)
+        self.goal_high_pass = ops.image_to_device(goal.high_pass, real)
+        self.visible = ops.image_to_device(goal.visible, np.int8)
+        self.log_magnitude = ops.image_to_device(log_magnitude, real)
+        self.phase = ops.image_to_device(phase, real)
         self.moments = [zeros(self.log_magnitude.shape, real) for _ in range(4)]
         start = np.exp(np.asarray(log_magnitude, dtype=real)) * (np.cos(phase) + 1j * np.sin(phase))
         self.field = ops.to_device(start.astype(ops.complex))
@@ -151,4 +144,4 @@ class DisplayFitKernels:
         return self.log_magnitude.get().T, self.phase.get().T
 
 
-__all__ = ["DisplayFitKernels", "LOSS_READ_EVERY", "REDUCTION_GROUP_SIZE", "program_defines"]
+__all__ = ["DisplayFitKernels", "LOSS_READ_EVERY", "program_defines"]

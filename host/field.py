@@ -664,17 +664,19 @@ def _fit_on_device(kernels, goal: DisplayGoal, log_magnitude, phase, schedule: _
     from .display_kernels import LOSS_READ_EVERY, DisplayFitKernels
 
     fit = DisplayFitKernels(kernels, goal, log_magnitude, phase, schedule.iterations)
-    taken = reported = 0
-    while schedule.go_on(taken):
-        fit.step(schedule.rate(taken))
-        taken += 1
-        if taken % LOSS_READ_EVERY == 0:
-            losses = fit.losses()  # waits for the queue
-            for index in range(reported, taken) if progress is not None else ():
-                progress(index + 1, schedule.iterations, float(losses[index]))
-            reported = taken
+    reported = 0
+    while schedule.go_on(fit.steps):
+        fit.step(schedule.rate(fit.steps))
+        if fit.steps % LOSS_READ_EVERY == 0:
+            reported = _report_losses(fit.losses(), reported, schedule.iterations, progress)  # waits for the queue
     losses = fit.losses()
-    for index in range(reported, taken) if progress is not None else ():
-        progress(index + 1, schedule.iterations, float(losses[index]))
+    _report_losses(losses, reported, schedule.iterations, progress)
     log_magnitude, phase = fit.parameters()
     return log_magnitude, phase, losses
+
+
+def _report_losses(losses: np.ndarray, reported: int, planned: int, progress) -> int:
+    """``progress(step, planned, loss)`` for each step after the first ``reported``; returns the steps reported."""
+    for index in range(reported, len(losses)) if progress is not None else ():
+        progress(index + 1, planned, float(losses[index]))
+    return len(losses)

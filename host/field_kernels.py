@@ -33,10 +33,18 @@ import numpy as np
 from .. import _reference as ref
 from .._runtime import build, context_for, select_device
 from ..config import DEFAULT_CONFIG, ScannerConfig
-from .field import REGULARISATION, FieldOperator
+from .field import REGULARISATION, FieldOperator, lateral_taps
 
-#: Work-items of each FFT work-group (two butterflies each of the 256-point depth transforms).
+#: Work-items of each FFT work-group (one radix-4 butterfly each per stage of the 256-point depth transforms).
 WORK_GROUP_SIZE = 64
+#: Work-items of the stage-1 kernels' reduction work-groups (a power of two; fewer where the device allows fewer).
+REDUCTION_WORK_GROUP = 64
+
+
+def reduction_work_group(device) -> int:
+    """The reductions' work-group size on ``device``: :data:`REDUCTION_WORK_GROUP`, or the largest power of
+    two the device allows below it."""
+    return 1 << (min(REDUCTION_WORK_GROUP, device.max_work_group_size).bit_length() - 1)
 
 
 def padded_columns(config: ScannerConfig, reach: int) -> int:
@@ -89,7 +97,7 @@ class FieldKernels:
         self.context, self.queue = context_for(self.device)
         self.real = np.float64 if double else np.float32
         self.complex = np.complex128 if double else np.complex64
-        reach = (FieldOperator(config, padded_columns=None).taps.size - 1) // 2
+        reach = lateral_taps(config).size // 2
         self.twin = FieldOperator(config, padded_columns=padded_columns(config, reach))
         defines = program_defines(config, reach, min(WORK_GROUP_SIZE, self.device.max_work_group_size))
         self.work_group_size = dict(defines)["WG_SIZE"]
@@ -118,10 +126,14 @@ class FieldKernels:
 
     def to_device(self, field: np.ndarray):
         """The host's (Nz, Nx) field as a device field (Nx, Nz) of the kernels' precision."""
-        field = np.asarray(field)
-        if field.shape != self.config.shape:
-            raise ValueError(f"field is {field.shape}, the scanner's grid is {self.config.shape}")
-        return self._upload(field.T, self.complex)
+        return self.image_to_device(field, self.complex)
+
+    def image_to_device(self, image: np.ndarray, dtype):
+        """A host (Nz, Nx) image as a device array in the fields' layout, (Nx, Nz), of ``dtype``."""
+        image = np.asarray(image)
+        if image.shape != self.config.shape:
+            raise ValueError(f"field is {image.shape}, the scanner's grid is {self.config.shape}")
+        return self._upload(image.T, dtype)
 
     def to_host(self, field) -> np.ndarray:
         """A device field as the host's (Nz, Nx), complex128."""
@@ -153,4 +165,5 @@ class FieldKernels:
         return out
 
 
-__all__ = ["FieldKernels", "WORK_GROUP_SIZE", "padded_columns", "program_defines"]
+__all__ = ["FieldKernels", "REDUCTION_WORK_GROUP", "WORK_GROUP_SIZE", "padded_columns", "program_defines",
+           "reduction_work_group"]

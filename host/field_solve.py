@@ -19,15 +19,15 @@ regularised inverse of the de-logged target with zero phase):
   projections onto the aimed levels' intervals: most pixels onto their level.
 - ``hinge``: :func:`octcl.host.linear.fit_levels`, L-BFGS on the squared
   distance to the intervals, the brightest pixel pinned: the last pixels.
+- ``aim``: :class:`octcl.host.aim.AimSearch`, rounds that move unwritable
+  pixels of the aim to their other side where the exact score gains and a
+  short hinge fit can follow; from a field at its aim, which it keeps there.
 
 Each step has two backends with one schedule: NumPy on the host (the
 reference, ``--backend numpy``) and OpenCL kernels on a device
 (:attr:`FieldSolve.kernels`: :func:`~octcl.host.field.fit_field` with its
 ``kernels``, :mod:`octcl.host.linear_device`); the field passes between
 steps on the host, once per step.
-- ``aim``: :class:`octcl.host.aim.AimSearch`, rounds that move unwritable
-  pixels of the aim to their other side where the exact score gains and a
-  short hinge fit can follow; from a field at its aim, which it keeps there.
 
 Rules the loop keeps: the result is the best field any step left
 (:attr:`FieldSolve.best_field`; a step that leaves fewer pixels at their

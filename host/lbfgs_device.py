@@ -54,10 +54,9 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from .._runtime import build
+from .field_kernels import REDUCTION_WORK_GROUP, reduction_work_group
 from .lbfgs import ARMIJO, MAX_HALVINGS
 
-#: Work-items of each reduction work-group (a power of two; fewer where the device allows fewer).
-REDUCTION_WORK_GROUP = 64
 #: Reduction work-groups per compute unit, at least :data:`MIN_REDUCTION_GROUPS`.
 REDUCTION_GROUPS_PER_UNIT = 4
 MIN_REDUCTION_GROUPS = 16
@@ -75,12 +74,6 @@ PAIR_SUMS = 5
 _GRADIENT_SQUARED, _CURVATURE, _Y_SQUARED, _S_G, _Y_G = range(PAIR_SUMS)
 # Slots of the minimiser's scalars: the loss at the last point evaluated, then pair_dots' sums.
 _LOSS, _PAIR = 0, 1
-
-
-def reduction_work_group(device) -> int:
-    """The reductions' work-group size on ``device``: :data:`REDUCTION_WORK_GROUP`, or the largest power of
-    two the device allows below it."""
-    return 1 << (min(REDUCTION_WORK_GROUP, device.max_work_group_size).bit_length() - 1)
 
 
 def program_defines(work_group_size: int = REDUCTION_WORK_GROUP) -> tuple:
@@ -317,5 +310,5 @@ def _compact_coefficients(pairs: list, s_y: np.ndarray, y_y: np.ndarray, s_g: np
 
 
 __all__ = ["MAX_MEMORY", "MIN_PAIR_GROUPS", "MIN_REDUCTION_GROUPS", "PAIR_SUMS", "REDUCTION_GROUPS_PER_UNIT",
-           "REDUCTION_WORK_GROUP", "VectorKernels", "minimise", "pair_sum", "program_defines", "reduction_work_group",
+           "VectorKernels", "minimise", "pair_sum", "program_defines",
            "slot_mask"]

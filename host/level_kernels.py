@@ -52,11 +52,7 @@ class LevelKernels:
 
     def bounds_to_device(self, lower: np.ndarray, upper: np.ndarray):
         """The host's (Nz, Nx) bounds [l, u] as device arrays (Nx, Nz) of the kernels' real dtype."""
-        import pyopencl.array as cl_array
-
-        return tuple(cl_array.to_device(self.kernels.queue, np.ascontiguousarray(np.asarray(bound).T,
-                                                                                dtype=self.kernels.real))
-                     for bound in (lower, upper))
+        return tuple(self.kernels.image_to_device(bound, self.kernels.real) for bound in (lower, upper))
 
     def interval_difference(self, a_scans, lower, upper, out=None):
         """D = P_𝓜(A) − A; returns ``out`` (a new device field when None). ``out`` may be ``a_scans``."""

@@ -243,15 +243,8 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
     LinearFit
     """
     start = time.perf_counter()
-    if not (isinstance(iterations, int) and iterations >= 1):
-        raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
-    levels = target_levels(target, config)
     operator = FieldOperator(config, workers)
-    aimed = levels if aim is None else target_levels(aim, config)
-    lower, upper = level_magnitude_bounds(aimed)
-    if initial is None:
-        initial = regularised_start(levels, operator)
-    field = np.asarray(initial, dtype=np.complex128) / np.abs(operator.apply(initial)).max()
+    aimed, field, lower, upper = retrieval_start(target, iterations, initial, aim, operator)
     previous = field
     taken = clock_steps = 0
     while taken < iterations:
@@ -265,6 +258,23 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
         if progress is not None:
             progress(taken, iterations)
     return _normalised_fit(operator, field, aimed, taken, time.perf_counter() - start, clock_steps)
+
+
+def _check_iterations(iterations) -> None:
+    if not (isinstance(iterations, int) and iterations >= 1):
+        raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
+
+
+def retrieval_start(target, iterations, initial, aim, operator: FieldOperator):
+    """What :func:`retrieve_field` (and its device twin) start from, its arguments checked: the aimed levels,
+    the start scaled so that max|A(F)| = 1, and the aimed intervals [l, u] (:func:`level_magnitude_bounds`)."""
+    _check_iterations(iterations)
+    levels = target_levels(target, operator.config)
+    aimed = levels if aim is None else target_levels(aim, operator.config)
+    if initial is None:
+        initial = regularised_start(levels, operator)
+    field = np.asarray(initial, dtype=np.complex128) / np.abs(operator.apply(initial)).max()
+    return (aimed, field, *level_magnitude_bounds(aimed))
 
 
 def regularised_start(levels: np.ndarray, operator: FieldOperator) -> np.ndarray:
@@ -356,15 +366,8 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
         ``identical`` counts pixels at their aimed level.
     """
     start = time.perf_counter()
-    if not (isinstance(iterations, int) and iterations >= 1):
-        raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
-    aim = target_levels(aim, config)
     operator = FieldOperator(config, workers)
-    field = np.asarray(field, dtype=np.complex128)
-    magnitude = np.abs(operator.apply(field))
-    scale = magnitude.max()
-    field = field / scale
-    lower, upper = _anchored_bounds(aim, magnitude / scale, margin)
+    aim, field, lower, upper = hinge_start(field, aim, iterations, margin, operator)
 
     def loss_and_gradient(field_now):  # the gradient as ∂/∂Re F + i·∂/∂Im F: Hᴴ·r
         a_scans = operator.apply(field_now)
@@ -375,6 +378,17 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
                      time_budget_s)
     found, _ = lbfgs.minimise(loss_and_gradient, field, iterations, memory=LEVEL_FIT_MEMORY, callback=stop)
     return _normalised_fit(operator, found, aim, stop.taken, time.perf_counter() - start, stop.clock_steps)
+
+
+def hinge_start(field, aim, iterations, margin: float, operator: FieldOperator):
+    """What :func:`fit_levels` (and its device twin) start from, its arguments checked: the aimed levels, the
+    field scaled so that max|A(F)| = 1, and the anchored intervals [l, u] (:func:`_anchored_bounds`)."""
+    _check_iterations(iterations)
+    aim = target_levels(aim, operator.config)
+    field = np.asarray(field, dtype=np.complex128)
+    magnitude = np.abs(operator.apply(field))
+    scale = magnitude.max()
+    return (aim, field / scale, *_anchored_bounds(aim, magnitude / scale, margin))
 
 
 class LevelStop:
@@ -690,5 +704,5 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
 
 __all__ = ["DECODE_CORRECTIONS", "ENERGY_FLOOR_PCT", "INTERVAL_MARGIN", "LinearFit", "LinearStart",
            "LEVEL_FIT_ITERATIONS", "START_LENGTHS", "START_PROJECTIONS", "linear_start", "MOMENTUM", "RETRIEVAL_ITERATIONS",
-           "SHADOW_BOUND", "STEP", "LevelStop", "decode_exact", "level_magnitude_bounds", "rendered_cells",
+           "SHADOW_BOUND", "STEP", "LevelStop", "decode_exact", "hinge_start", "retrieval_start", "level_magnitude_bounds", "rendered_cells",
            "retrieve_field", "row_depths_um", "row_offsets_um", "split_on_carriers", "fit_levels"]

@@ -37,12 +37,11 @@ import time
 import numpy as np
 
 from ..render import Rendering
-from .field import target_levels
 from .field_kernels import FieldKernels
 from .lbfgs_device import minimise
 from .level_kernels import LevelKernels
 from .linear import (INTERVAL_MARGIN, LEVEL_FIT_ITERATIONS, LEVEL_FIT_MEMORY, RETRIEVAL_ITERATIONS,
-                     LevelStop, LinearFit, _anchored_bounds, _normalised_fit, level_magnitude_bounds, regularised_start)
+                     LevelStop, LinearFit, _normalised_fit, hinge_start, retrieval_start)
 
 #: Projection steps enqueued past the one the host waits for before reading the clock.
 PROJECTIONS_IN_FLIGHT = 2
@@ -80,17 +79,11 @@ def retrieve_field_device(kernels: FieldKernels, target, iterations: int = RETRI
     LinearFit
     """
     start = time.perf_counter()
-    if not (isinstance(iterations, int) and iterations >= 1):
-        raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
-    levels = target_levels(target, kernels.config)
-    aimed = levels if aim is None else target_levels(aim, kernels.config)
     twin = kernels.twin
-    if initial is None:
-        initial = regularised_start(levels, twin)
-    initial = np.asarray(initial, dtype=np.complex128)
+    aimed, initial, lower, upper = retrieval_start(target, iterations, initial, aim, twin)
     ops = LevelKernels(kernels)
-    lower, upper = ops.bounds_to_device(*level_magnitude_bounds(aimed))
-    field = kernels.to_device(initial / np.abs(twin.apply(initial)).max())
+    lower, upper = ops.bounds_to_device(lower, upper)
+    field = kernels.to_device(initial)
     ahead, scratch = field.copy(), kernels.empty()  # Y_0 = F_0: no momentum at the first step
     pending = collections.deque()
     taken = clock_steps = 0
@@ -144,15 +137,10 @@ def fit_levels_device(kernels: FieldKernels, field: np.ndarray, aim: np.ndarray,
         ``identical`` counts pixels at their aimed level.
     """
     start = time.perf_counter()
-    if not (isinstance(iterations, int) and iterations >= 1):
-        raise ValueError(f"iterations must be a whole number ≥ 1, got {iterations!r}")
-    aim = target_levels(aim, kernels.config)
     twin = kernels.twin
-    field = np.asarray(field, dtype=np.complex128)
-    magnitude = np.abs(twin.apply(field))
-    scale = magnitude.max()
+    aim, field, lower, upper = hinge_start(field, aim, iterations, margin, twin)
     ops = LevelKernels(kernels)
-    lower, upper = ops.bounds_to_device(*_anchored_bounds(aim, magnitude / scale, margin))
+    lower, upper = ops.bounds_to_device(lower, upper)
     a_scans = kernels.empty()
 
     def loss_and_gradient(field_now, gradient, scalars, slot):
@@ -162,7 +150,7 @@ def fit_levels_device(kernels: FieldKernels, field: np.ndarray, aim: np.ndarray,
 
     stop = LevelStop(aim, lambda field_now: Rendering.from_a_scans(twin.apply(kernels.to_host(field_now))).levels,
                      start, time_budget_s)
-    found, _ = minimise(ops.vectors, loss_and_gradient, kernels.to_device(field / scale), iterations,
+    found, _ = minimise(ops.vectors, loss_and_gradient, kernels.to_device(field), iterations,
                         memory=LEVEL_FIT_MEMORY, callback=stop)
     return _normalised_fit(twin, kernels.to_host(found), aim, stop.taken, time.perf_counter() - start,
                            stop.clock_steps)
