@@ -17,14 +17,6 @@
  * OCTCL_DOUBLE for float64.
  */
 
-#ifdef OCTCL_DOUBLE
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;
-typedef double2 complex_t;
-#else
-typedef float real;
-typedef float2 complex_t;
-#endif
 
 #define STAT_PEAK 0
 

@@ -40,14 +40,6 @@
  * ENERGY_WEIGHT; OCTCL_DOUBLE for float64.
  */
 
-#ifdef OCTCL_DOUBLE
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;
-typedef double2 complex_t;
-#else
-typedef float real;
-typedef float2 complex_t;
-#endif
 
 #define PIXELS (NX * NZ)
 #define PASS_SIZE (PARTIALS * RWG_SIZE)

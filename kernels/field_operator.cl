@@ -36,14 +36,6 @@
  * OCTCL_DOUBLE for float64.
  */
 
-#ifdef OCTCL_DOUBLE
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;
-typedef double2 complex_t;
-#else
-typedef float real;
-typedef float2 complex_t;
-#endif
 
 static inline complex_t cmul(complex_t a, complex_t b) {
     return (complex_t)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);

@@ -31,12 +31,6 @@
  * Defines: WG_SIZE (a power of two); OCTCL_DOUBLE for float64.
  */
 
-#ifdef OCTCL_DOUBLE
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;
-#else
-typedef float real;
-#endif
 
 /* The sums of pair_dots before the stored slots' four each. */
 #define PAIR_SUMS 5

@@ -29,14 +29,6 @@
  * Defines: WG_SIZE (a power of two); OCTCL_DOUBLE for float64.
  */
 
-#ifdef OCTCL_DOUBLE
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;
-typedef double2 complex_t;
-#else
-typedef float real;
-typedef float2 complex_t;
-#endif
 
 /* P_𝓜 at one pixel. |A| as sqrt(Re² + Im²): hypot cost 30 times as much in Intel's CPU runtime, and
  * the two differ only where Re² + Im² leaves the normal range (|A| < 1e−19 in float32, the field

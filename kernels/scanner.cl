@@ -92,16 +92,6 @@
  * two); OCTCL_DOUBLE selects double precision.
  */
 
-#ifdef OCTCL_DOUBLE
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;
-typedef double2 real2;      /* a double-word number (hi, lo) or an affine map (a, b) */
-typedef double2 complex_t;
-#else
-typedef float real;
-typedef float2 real2;
-typedef float2 complex_t;
-#endif
 
 /* Vector maths works on LANES reals at a time: 8 floats or 4 doubles, the
  * 256 bits of an AVX2 register. (Wider vectors of doubles are passed

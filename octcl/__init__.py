@@ -27,7 +27,7 @@ def score(ref, pred) -> dict:
 
 
 def invert(target, output_path, **options):
-    """Invert a target B-scan (PNG path or uint8 array) into a phantom file (:func:`octcl.host.invert.invert`)."""
-    from .host.invert import invert as _invert
+    """Invert a target B-scan (PNG path or uint8 array) into a phantom file (:func:`octcl.host.pipeline.invert.invert`)."""
+    from .host.pipeline.invert import invert as _invert
 
     return _invert(target, output_path, **options)

@@ -2,7 +2,7 @@
 
 The fraction done and the time left are the caller's estimates, not a rate
 measured here: an inversion ends at whichever comes first of its time
-budget and the end of its iteration schedule (:class:`octcl.host.invert.
+budget and the end of its iteration schedule (:class:`octcl.host.pipeline.invert.
 InvertProgress`), which no steps-per-second extrapolation knows. On a
 terminal the bar is drawn by tqdm (terminal width, redraw, clean-up),
 with tqdm's own rate and remaining-time fields left out for that reason.

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._depth_order import depth_order as classic_depth_order
+from .device.depth_order import depth_order as classic_depth_order
 from ._io import GREY_LUT
 from .config import DEFAULT_CONFIG, ScannerConfig
 from .phantom import Phantom

@@ -81,7 +81,7 @@ def _cmd_render(args) -> int:
     phantom = Phantom.load(args.phantom, config, truncate=args.truncate)
     settings = None
     if args.backend == "opencl":
-        from ._scanner_op import KernelSettings
+        from .device.scanner import KernelSettings
 
         settings = KernelSettings(spread_width=args.spread_width, shadow_radius_sq=args.shadow_radius_sq,
                                   double=args.double, variant=args.kernel_variant)
@@ -154,7 +154,7 @@ def _cmd_phantom(args) -> int:
 
 
 def _invert_progress(display: ProgressDisplay):
-    """A progress callback for :func:`octcl.host.invert.invert` drawing on ``display``."""
+    """A progress callback for :func:`octcl.host.pipeline.invert.invert` drawing on ``display``."""
     last_stage = None
 
     def show(state) -> None:
@@ -171,7 +171,7 @@ def _invert_progress(display: ProgressDisplay):
 
 
 def _invert_lines(result: dict) -> list[str]:
-    """Human summary of one inversion (the keys of :class:`octcl.host.invert.InvertResult`)."""
+    """Human summary of one inversion (the keys of :class:`octcl.host.pipeline.invert.InvertResult`)."""
     seconds = result["seconds"]
     stages = ", ".join(f"{name} {format_seconds(seconds[name])}"
                        for name in ("field", "decode", "setup", "refine") if name in seconds)
@@ -235,7 +235,7 @@ def _security(args):
                     require_encryption=True)
 
 
-def _process_started() -> float:
+def process_started() -> float:
     """``time.monotonic()`` at this process's start (psutil's creation time, 10 ms steps on Linux), so that the
     ``octcl`` program's time budget counts the interpreter's start and the imports: about 0.5 s on two cores."""
     import psutil
@@ -251,7 +251,7 @@ def _cmd_invert(args) -> int:
         raise UsageError("--targets needs --out DIR")
     if args.target and not args.output:
         raise UsageError("invert needs -o PHANTOM.txt")
-    from .host.invert import BACKENDS, REGIMES, TimeBudgetExceeded, default_schedule, invert
+    from .host.pipeline.invert import BACKENDS, REGIMES, TimeBudgetExceeded, default_schedule, invert
 
     # Stage options for one scan or each scan of a batch: the fixed schedule's (docs/reproducibility.md)
     # and the target score.
@@ -259,7 +259,7 @@ def _cmd_invert(args) -> int:
                 for name in ("iterations", "field_iterations", "field_schedule", "threads", "target_score")
                 if getattr(args, name) is not None}
     if args.field_schedule is not None:  # refused before any work, a batch's cluster included
-        from .host.field_solve import FieldSchedule
+        from .host.stage1.solve import FieldSchedule
 
         try:
             FieldSchedule.parse(args.field_schedule)
@@ -322,7 +322,7 @@ def _cmd_weights(args) -> int:
 
 
 def _cmd_devices(args) -> int:
-    from ._runtime import OpenCLUnavailableError, choose_device, describe, list_devices, probe
+    from .device.runtime import OpenCLUnavailableError, choose_device, describe, list_devices, probe
 
     devices = list_devices()
     try:
@@ -479,8 +479,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def command() -> int:
     """The ``octcl`` program: :func:`main` of the command line, its time budgets counted from the process's
-    start (:func:`_process_started`)."""
-    return main(started=_process_started())
+    start (:func:`process_started`)."""
+    return main(started=process_started())
 
 
 def main(argv=None, started: float | None = None) -> int:
@@ -491,7 +491,7 @@ def main(argv=None, started: float | None = None) -> int:
     if args.command == "phantom":
         args.kind = args.baseline_kind if args.kind == "baseline" else args.kind
     from ._lpips import WeightsIntegrityError, WeightsMissingError
-    from ._runtime import OpenCLUnavailableError
+    from .device.runtime import OpenCLUnavailableError
 
     expected = (PhantomError, ImageFormatError, ConfigError, UsageError, WeightsMissingError,
                 WeightsIntegrityError, OpenCLUnavailableError, OutputError, FileNotFoundError, ValueError,

@@ -239,7 +239,7 @@ class Phantom:
             energy = np.full(count, 1.0)
         else:
             energy = np.where(z <= 400.0, 0.01, 2.5)
-        return cls(*(_round_significant(c, 5) for c in (x, y, z, energy)))
+        return cls(*(round_significant(c, 5) for c in (x, y, z, energy)))
 
 
     @classmethod
@@ -601,7 +601,7 @@ def _format_rows(rows: np.ndarray, digits: int) -> bytes:
     return text[text != 0].tobytes()
 
 
-def _round_significant(values: np.ndarray, digits: int) -> np.ndarray:
+def round_significant(values: np.ndarray, digits: int) -> np.ndarray:
     """Round to ``digits`` significant digits exactly as ``'%.{digits-1}e'`` prints and ``float()`` reads.
 
     From :func:`_decimal_digits`: v = ±m·10^p is read back by one correctly

@@ -96,7 +96,7 @@ def render(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG, backend: st
     backend : {"opencl", "numpy"}
         The OpenCL kernels (default) or the float64 NumPy reference.
     device : str, optional
-        OpenCL device choice (see :mod:`octcl._runtime`).
+        OpenCL device choice (see :mod:`octcl.device.runtime`).
     settings : KernelSettings, optional
         Accuracy knobs of the kernels.
 
@@ -111,8 +111,8 @@ def render(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG, backend: st
                          display=reference.display, levels=reference.levels)
     if backend != "opencl":
         raise ValueError(f"unknown backend {backend!r}; use 'opencl' or 'numpy'")
-    from ._runtime import select_device
-    from ._scanner_op import KernelSettings
+    from .device.runtime import select_device
+    from .device.scanner import KernelSettings
 
     if device is None or isinstance(device, str):
         device = select_device(device)
@@ -135,6 +135,6 @@ def _scanner_kernels(config: ScannerConfig, settings, device):
     the forward kernel. The lock serialises renders that share it (its
     phantom layout is state).
     """
-    from ._scanner_op import ScannerKernels
+    from .device.scanner import ScannerKernels
 
     return ScannerKernels(config, settings, device), threading.Lock()

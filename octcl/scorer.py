@@ -36,7 +36,7 @@ COMPONENTS = tuple(f"msssim_{name}" for name in MAP_NAMES) + tuple(
     f"one_minus_lpips_{name}" for name in MAP_NAMES
 )
 # Files in a scan directory that are maps of a scan, not scans.
-_MAP_FILE_SUFFIXES = ("_OAC.png", "_SC.png", "_RSC.png")
+MAP_FILE_SUFFIXES = ("_OAC.png", "_SC.png", "_RSC.png")
 # skimage's rgb2gray luminance weights (ITU-R BT.709 primaries).
 _LUMINANCE = (0.2125, 0.7154, 0.0721)
 
@@ -224,7 +224,7 @@ def score_directories(ref_dir, pred_dir, progress=None) -> dict:
     ref_dir, pred_dir = Path(ref_dir), Path(pred_dir)
     names = sorted(
         path.name for suffix in SCAN_SUFFIXES for path in ref_dir.glob(f"*{suffix}")
-        if not path.name.endswith(_MAP_FILE_SUFFIXES)
+        if not path.name.endswith(MAP_FILE_SUFFIXES)
     )
     if not names:
         raise FileNotFoundError(f"{ref_dir}: no reference scans (*.npy, or *.png other than map files)")

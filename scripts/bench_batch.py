@@ -4,12 +4,12 @@ N synthetic targets (``octcl phantom skin`` seeds 0…N−1, rendered, saved as
 ``.npy`` as the challenge ships real scans) are inverted with the same
 per-scan settings by each mode: the seed and a fixed schedule
 (``--iterations`` stage-3 and ``--field-iterations`` stage-1 Adam steps,
-:func:`octcl.host.invert.invert`'s ``iterations``), so that every scan ends
+:func:`octcl.host.pipeline.invert.invert`'s ``iterations``), so that every scan ends
 on its schedule and not on the clock, whatever the load, and runs at the
 mode's thread count per scan (all cores for ``sequential``, T otherwise):
 
 - ``sequential``: one process inverting the scans one after the other with
-  :func:`octcl.host.invert.invert` (what ``octcl invert --targets`` did
+  :func:`octcl.host.pipeline.invert.invert` (what ``octcl invert --targets`` did
   before it ran on Dask);
 - ``local:WxT``: :func:`octcl.host.batch.invert_batch` on its embedded
   local cluster of W worker processes × T threads (cluster start included
@@ -58,7 +58,7 @@ import numpy as np
 from octcl._io import atomic_write
 from octcl.host.batch import invert_batch
 from octcl.host.batch.report import summarise
-from octcl.host.field import _available_cores
+from octcl.host.threads import available_cores
 from octcl.phantom import Phantom
 from octcl.render import render
 
@@ -79,7 +79,7 @@ def make_targets(folder: Path, count: int, plain: bool = False) -> None:
 
 def sequential_child(targets: Path, out: Path, budget: float, seed: int, schedule: dict) -> None:
     """The sequential path: :func:`invert` on each target in turn in this process; rows as JSON on stdout."""
-    from octcl.host.invert import invert
+    from octcl.host.pipeline.invert import invert
 
     rows = {}
     for path in sorted(targets.glob("*.npy")):
@@ -222,7 +222,7 @@ def main(argv=None) -> int:
 
     targets = args.out / ("plain_targets" if args.plain else "targets")
     make_targets(targets, args.scans, args.plain)
-    cores = _available_cores()
+    cores = available_cores()
     results = []
     for mode in args.modes:
         load = os.getloadavg()[0]

@@ -6,7 +6,7 @@ Times, on a 256×512 complex64 field stored A-scan by A-scan (Nx, Nz):
   per A-scan a 256-point FFT, the window, the inverse, one kernel) against
   VkFFT's batched forward transform along depth, the window as a pyopencl
   elementwise product, and VkFFT's inverse;
-- the regularised inverse H⁺ (:meth:`octcl.host.field_kernels.FieldKernels.pseudo_inverse`:
+- the regularised inverse H⁺ (:meth:`octcl.host.stage1.operator_device.FieldKernels.pseudo_inverse`:
   depth FFTs, per depth frequency a 1024-point lateral FFT, the filter and
   its inverse, the depth inverses) against the same with VkFFT: the field
   zero-padded to (1024, 256), VkFFT's 2-D forward transform, the filter,
@@ -58,8 +58,8 @@ def main(argv=None) -> int:
     import pyopencl.elementwise as cl_elementwise
 
     from octcl import _reference as ref
-    from octcl._runtime import describe
-    from octcl.host.field_kernels import FieldKernels
+    from octcl.device.runtime import describe
+    from octcl.host.stage1.operator_device import FieldKernels
 
     kernels = FieldKernels(device=args.device)
     queue, config = kernels.queue, kernels.config

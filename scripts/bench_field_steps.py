@@ -3,16 +3,16 @@
 On one target (default the official Uniform A), after the default's display
 fit and projections (``display:150,project:100``):
 
-- a display-fit step (:func:`octcl.host.field.display_loss` and an Adam
+- a display-fit step (:func:`octcl.host.stage1.display_loss.display_loss` and an Adam
   step), float32 and float64, over 50 steps of :func:`fit_field`;
-- a projection step (:func:`octcl.host.linear.retrieve_field`), over 50;
-- the hinge fit (:func:`octcl.host.linear.fit_levels`) from the projected
+- a projection step (:func:`octcl.host.stage1.projections.retrieve_field`), over 50;
+- the hinge fit (:func:`octcl.host.stage1.hinge.fit_levels`) from the projected
   field to every pixel at its level, with octcl's L-BFGS
-  (:mod:`octcl.host.lbfgs`) at 5, 10 and 20 stored pairs, and with SciPy's
+  (:mod:`octcl.host.optim.lbfgs`) at 5, 10 and 20 stored pairs, and with SciPy's
   L-BFGS-B at 10 and 20 on the same loss: iterations, seconds, share at the
   aimed level;
-- the same three steps as OpenCL kernels (:mod:`octcl.host.display_kernels`,
-  :mod:`octcl.host.linear_device`) on ``--device`` (default octcl's choice),
+- the same three steps as OpenCL kernels (:mod:`octcl.host.stage1.display_device`,
+  :mod:`octcl.host.stage1.backend`) on ``--device`` (default octcl's choice),
   float32, each with the host step's time over its own (a ratio of 3 or
   more: the kernels' step takes at most a third of the host's), and the
   operator H and its regularised inverse H⁺ alone;
@@ -34,10 +34,13 @@ from pathlib import Path
 import numpy as np
 
 from octcl._io import read_scan
-from octcl.host.ceiling import aimed_levels
-from octcl.host.field import FieldOperator, fit_field, target_levels
-from octcl.host.field_solve import FieldSolve, display, project
-from octcl.host import linear
+from octcl.host.stage1.ceiling import aimed_levels
+from octcl.host.stage1.display import fit_field
+from octcl.host.stage1.levels import target_levels
+from octcl.host.stage1.operator import FieldOperator
+from octcl.host.stage1.backend import NumpyBackend, OpenCLBackend
+from octcl.host.stage1.solve import FieldSolve, display, project
+from octcl.host.stage1 import hinge, levels as stage1_levels, projections as linear
 from octcl.render import Rendering
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -59,7 +62,7 @@ def scipy_hinge(field, aim, memory: int, iterations: int, workers: int):
     operator = FieldOperator(workers=workers)
     magnitude = np.abs(operator.apply(field))
     field = field / magnitude.max()
-    lower, upper = linear._anchored_bounds(aim, magnitude / magnitude.max(), linear.INTERVAL_MARGIN)
+    lower, upper = stage1_levels.anchored_bounds(aim, magnitude / magnitude.max(), stage1_levels.INTERVAL_MARGIN)
     size, shape = field.size, field.shape
 
     def as_field(vector):
@@ -67,7 +70,7 @@ def scipy_hinge(field, aim, memory: int, iterations: int, workers: int):
 
     def loss_and_gradient(vector):
         a_scans = operator.apply(as_field(vector))
-        residual = a_scans - linear._project(a_scans, lower, upper)
+        residual = a_scans - stage1_levels.interval_projection(a_scans, lower, upper)
         gradient = operator.adjoint(residual)
         return 0.5 * float(np.vdot(residual, residual).real), np.concatenate([gradient.real.ravel(),
                                                                              gradient.imag.ravel()])
@@ -76,7 +79,7 @@ def scipy_hinge(field, aim, memory: int, iterations: int, workers: int):
 
     def stop_when_done(intermediate_result):  # the name asks SciPy for an OptimizeResult
         taken[0] += 1
-        if taken[0] % linear.LEVEL_CHECK_EVERY == 0 and \
+        if taken[0] % hinge.LEVEL_CHECK_EVERY == 0 and \
                 np.array_equal(Rendering.from_a_scans(operator.apply(as_field(intermediate_result.x))).levels, aim):
             raise StopIteration
 
@@ -109,14 +112,13 @@ def main(argv=None) -> int:
     rows.append(("projection step, complex128", f"{1e3 * seconds / 50:.1f} ms", ""))
     host_projection = seconds
 
-    from octcl._runtime import describe
-    from octcl.host.field_kernels import FieldKernels
-    from octcl.host.linear_device import fit_levels_device, retrieve_field_device
+    from octcl.device.runtime import describe
+    from octcl.host.stage1.operator_device import FieldKernels
 
     kernels = FieldKernels(device=args.device)
-    fit_field(levels, iterations=2, time_budget_s=None, kernels=kernels)  # builds and first launches, not timed
-    seconds, _ = median_seconds(lambda: fit_field(levels, iterations=50, time_budget_s=None, threads=args.threads,
-                                                  kernels=kernels), args.repeats)
+    device = OpenCLBackend(kernels=kernels)
+    fit_field(levels, iterations=2, time_budget_s=None, backend=device)  # builds and first launches, not timed
+    seconds, _ = median_seconds(lambda: fit_field(levels, iterations=50, time_budget_s=None, backend=device), args.repeats)
     rows.append(("display-fit step, OpenCL float32", f"{1e3 * seconds / 50:.1f} ms",
                  f"host float32 / kernels: {host_display['float32'] / seconds:.1f}×"))
     device_field = kernels.to_device(linear.regularised_start(levels, FieldOperator()))
@@ -128,17 +130,17 @@ def main(argv=None) -> int:
 
         seconds, _ = median_seconds(twenty_calls, args.repeats)
         rows.append((f"{name} of a field, OpenCL float32", f"{1e3 * seconds / 20:.2f} ms", ""))
-    seconds, _ = median_seconds(lambda: retrieve_field_device(kernels, levels, iterations=50, aim=aim), args.repeats)
+    seconds, _ = median_seconds(lambda: linear.retrieve_field(levels, iterations=50, aim=aim, backend=device), args.repeats)
     rows.append(("projection step, OpenCL float32", f"{1e3 * seconds / 50:.1f} ms",
                  f"host complex128 / kernels: {host_projection / seconds:.1f}×"))
 
-    start = FieldSolve(levels, aim, threads=args.threads).run(display(150) + project(100))
-    seconds, fit = median_seconds(lambda: fit_levels_device(kernels, start.field, aim, iterations=200), args.repeats)
+    start = FieldSolve(levels, aim, NumpyBackend(threads=args.threads)).run(display(150) + project(100))
+    seconds, fit = median_seconds(lambda: hinge.fit_levels(start.field, aim, iterations=200, backend=device), args.repeats)
     rows.append(("hinge fit, OpenCL float32 L-BFGS, 10 pairs", f"{seconds:.2f} s",
                  f"{fit.iterations} iterations, {100 * fit.identical:.3f} % at aim"))
     for memory in (5, 10, 20):
-        linear.LEVEL_FIT_MEMORY = memory
-        seconds, fit = median_seconds(lambda: linear.fit_levels(start.field, aim, iterations=200,
+        hinge.LEVEL_FIT_MEMORY = memory
+        seconds, fit = median_seconds(lambda: hinge.fit_levels(start.field, aim, iterations=200,
                                                                 workers=args.threads), args.repeats)
         rows.append((f"hinge fit, octcl L-BFGS, {memory} pairs", f"{seconds:.2f} s",
                      f"{fit.iterations} iterations, {100 * fit.identical:.3f} % at aim"))

@@ -5,7 +5,7 @@ For every implementation found (PoCL, Intel's CPU runtime, Oclgrind, any
 GPU driver) × kernel variant (work-item, work-group) × precision (float32,
 float64) it reports:
 
-- builds: the probe program (octcl._runtime.probe) and the scanner kernels;
+- builds: the probe program (octcl.device.runtime.probe) and the scanner kernels;
 - identical: % of 8-bit pixels equal to the float64 NumPy reference's, and
   the largest colour-index error;
 - render_s: layout + forward render, and gradient_s: forward for the
@@ -17,7 +17,7 @@ Real devices render the official Layers phantom (300,000 scatterers, the
 full 512 A-scan scanner); Oclgrind, a simulator that interprets every
 work-item, renders a small scene (8 A-scans, 48 µm, 300 scatterers) and is
 not timed against the others. The CPU order octcl prefers
-(octcl._runtime.CPU_ORDER) follows the render times measured here.
+(octcl.device.runtime.CPU_ORDER) follows the render times measured here.
 
     python scripts/bench_implementations.py --out docs/bench --repeats 7
 """
@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from octcl import _reference as ref
-from octcl._runtime import implementation, list_devices, probe
-from octcl._scanner_op import VARIANTS, KernelSettings, ScannerKernels
+from octcl.device.runtime import implementation, list_devices, probe
+from octcl.device.scanner import VARIANTS, KernelSettings, ScannerKernels
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import Phantom
 from octcl.render import Rendering, display_vjp, render

@@ -1,4 +1,4 @@
-"""Benchmark ``octcl.host.invert`` on a development set of B-scans, over several seeds.
+"""Benchmark ``octcl.host.pipeline.invert`` on a development set of B-scans, over several seeds.
 
 The set: the official scans in the repository's ``data/official`` (Uniform A
 and B, Layers A), the real scan ``../shared/data/real/orange.png`` beside the
@@ -69,10 +69,10 @@ import numpy as np
 
 from octcl._io import atomic_write, write_grey_png
 from octcl.host.batch.report import comparison_panel
-from octcl.host.loss import ExactScore
-from octcl.host.refine import RefineSchedule
-from octcl.host.field import target_levels
-from octcl.host.target import read_target, target_scan
+from octcl.host.stage3.loss import ExactScore
+from octcl.host.stage3.refine import RefineSchedule
+from octcl.host.stage1.levels import target_levels
+from octcl.host.pipeline.target import read_target, target_scan
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.render import render
 from octcl.scorer import COMPONENTS, global_score
@@ -108,7 +108,7 @@ def development_set(out: Path, skin: int, plain: int = 0) -> dict[str, Path]:
     return targets
 
 
-#: ``--schedules``: what runs, as :func:`octcl.host.invert.invert` keyword
+#: ``--schedules``: what runs, as :func:`octcl.host.pipeline.invert.invert` keyword
 #: arguments (beside the time budget, seed and iterations, which they may
 #: override). ``default`` is invert's default (the linear regime);
 #: ``physical`` the published pipeline (``--regime physical``);
@@ -134,12 +134,12 @@ def run_invert(target: Path, output: Path, report: Path, budget: float, seed: in
                schedule: str = "default") -> None:
     """invert() in a child process, so that ru_maxrss is this run's peak; its budget runs from the child's start,
     as ``octcl invert``'s does."""
-    code = ("import sys; from octcl.host.invert import invert; from octcl.host.refine import RefineSchedule; "
-            "from octcl.cli import _process_started; "
+    code = ("import sys; from octcl.host.pipeline.invert import invert; from octcl.host.stage3.refine import RefineSchedule; "
+            "from octcl.cli import process_started; "
             "options = dict(time_budget_s=float(sys.argv[4])); "
             f"options.update(dict({SCHEDULES[schedule]})); "
             "invert(sys.argv[1], sys.argv[2], seed=int(sys.argv[5]), report_path=sys.argv[3], "
-            "iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]), started=_process_started(), **options)")
+            "iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]), started=process_started(), **options)")
     subprocess.run([sys.executable, "-c", code, str(target), str(output), str(report), str(budget), str(seed),
                     str(iterations)], check=True)
 

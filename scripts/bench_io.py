@@ -60,7 +60,7 @@ import numpy as np
 from octcl import Phantom, render
 from octcl._io import write_grey_png
 from octcl.config import DEFAULT_CONFIG
-from octcl.phantom import MAX_ROW_BYTES, PhantomError, _parse_rows_exact, _round_significant
+from octcl.phantom import MAX_ROW_BYTES, PhantomError, _parse_rows_exact, round_significant
 from octcl.render import _scanner_kernels
 
 DIGITS = (6, 7, 8, 9)
@@ -262,11 +262,11 @@ marks = [time.perf_counter()]
 import numpy as np
 import octcl.cli
 marks.append(time.perf_counter())
-from octcl._runtime import context_for, select_device
+from octcl.device.runtime import context_for, select_device
 device = select_device()
 context_for(device)
 marks.append(time.perf_counter())
-from octcl._scanner_op import KernelSettings
+from octcl.device.scanner import KernelSettings
 from octcl.config import DEFAULT_CONFIG
 from octcl.render import Rendering, _scanner_kernels
 kernels, _ = _scanner_kernels(DEFAULT_CONFIG, KernelSettings(), device)
@@ -328,7 +328,7 @@ def inverted(folder: Path, phantom_path: Path, target: Path) -> None:
     phantom = Phantom.load(phantom_path)
     rows = []
     for digits in DIGITS + (None,):
-        rounded = phantom if digits is None else Phantom(*_round_significant(phantom.as_array(), digits).T)
+        rounded = phantom if digits is None else Phantom(*round_significant(phantom.as_array(), digits).T)
         scan = folder / f"inverted_{digits}.png"
         write_grey_png(scan, render(rounded).levels)
         rows.append([digits or "as read", f"{score_scans(target, scan)['mean']:.6f}"])
@@ -344,7 +344,7 @@ def main() -> None:
     parser.add_argument("--inverted", nargs=2, type=Path, metavar=("PHANTOM", "TARGET"),
                         help="only score an inverted phantom rounded to 6-9 digits against its target")
     args = parser.parse_args()
-    from octcl._runtime import describe, select_device
+    from octcl.device.runtime import describe, select_device
 
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, {platform.python_implementation()} "
           f"{platform.python_version()}, NumPy {np.__version__}; OpenCL device: {describe(select_device())}")

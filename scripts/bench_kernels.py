@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from octcl import _reference as ref
-from octcl._scanner_op import KernelSettings, ScannerKernels
+from octcl.device.scanner import KernelSettings, ScannerKernels
 from octcl.phantom import Phantom
 from octcl.render import Rendering, display_vjp, render
 
@@ -100,7 +100,7 @@ def measure_memory(scene: str) -> tuple[float, float]:
         "    return float(re.search(r'VmHWM:\\s+(\\d+)', open('/proc/self/status').read()).group(1)) / 1024\n"
         f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
         "from bench_kernels import SCENES\n"
-        "from octcl._scanner_op import ScannerKernels\n"
+        "from octcl.device.scanner import ScannerKernels\n"
         "from octcl.render import Rendering, display_vjp\n"
         f"p = SCENES[{scene!r}]()\n"
         "k = ScannerKernels()\n"

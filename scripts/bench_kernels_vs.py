@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 WORKER = r"""
 import json, sys, time
 import numpy as np
-from octcl._scanner_op import KernelSettings, ScannerKernels
+from octcl.device.scanner import KernelSettings, ScannerKernels
 from octcl.phantom import Phantom
 from octcl.render import Rendering, display_vjp
 scene, device, variant = sys.argv[1], sys.argv[2] or None, sys.argv[3]

@@ -88,7 +88,7 @@ def main() -> None:
         scan = folder / "scan.png"
         write_grey_png(scan, levels[:256, :512])
         rows.append(("B-scan PNG 256x512, read_target", scan,
-                     "from octcl.host.target import read_target", "read_target(path)"))
+                     "from octcl.host.pipeline.target import read_target", "read_target(path)"))
         npy = folder / "largest.npy"
         side = int((MAX_IMAGE_FILE_BYTES - 128) ** 0.5)
         np.save(npy, np.zeros((side, side), np.uint8))

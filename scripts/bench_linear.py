@@ -1,4 +1,4 @@
-"""Benchmark the linear regime's stages 1–2 (``octcl.host.linear``) on the development set.
+"""Benchmark the linear regime's stages 1–2 (``octcl.host.stage1.projections``) on the development set.
 
 For each scan and each count of display-fit Adam steps (``--adam``, 0 = the
 projections start from the regularised inverse of the de-logged target),
@@ -6,7 +6,7 @@ the projections run for each of ``--projections`` steps, and the field's own
 8-bit rendering is scored exactly against the target (the 8 components'
 mean), with its share of pixels at the target's level and its seconds. For
 the default (300 Adam steps, 300 projections) the field is also decoded
-(:func:`octcl.host.linear.decode_exact`), written and read back as the
+(:func:`octcl.host.stage2.exact.decode_exact`), written and read back as the
 phantom file, rendered by the OpenCL scanner and by the float64 reference
 (shadowing included), and scored: the phantom's score against the field's.
 
@@ -27,10 +27,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_invert import ORANGE_MISSING, development_set, write_csv  # noqa: E402
 
-from octcl.host.field import FieldOperator, fit_field  # noqa: E402
-from octcl.host.linear import RETRIEVAL_ITERATIONS, decode_exact, retrieve_field  # noqa: E402
-from octcl.host.loss import ExactScore  # noqa: E402
-from octcl.host.target import read_target  # noqa: E402
+from octcl.host.stage1.display import fit_field
+from octcl.host.stage1.operator import FieldOperator
+from octcl.host.stage1.projections import RETRIEVAL_ITERATIONS, retrieve_field
+from octcl.host.stage2.exact import decode_exact
+from octcl.host.stage3.loss import ExactScore
+from octcl.host.pipeline.target import read_target
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom  # noqa: E402
 from octcl.render import Rendering, render  # noqa: E402
 

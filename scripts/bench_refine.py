@@ -15,11 +15,11 @@ variant does late in the run.
 
 Variants (:data:`VARIANTS`): ``default``; ``lpips-every-K``, the LPIPS
 terms' gradient computed on every K-th step and reused between
-(:attr:`octcl.host.refine.RefineSchedule.lpips_every`); ``no-lpips``, the
+(:attr:`octcl.host.stage3.refine.RefineSchedule.lpips_every`); ``no-lpips``, the
 loss without its LPIPS terms; ``oac-lpips-only``, the loss without the
 Struct, SC and RSC LPIPS terms (OAC's has 8× their weight);
 ``no-fall-guard``, the main run never goes back to its best phantom when it
-falls (:attr:`octcl.host.refine.RefineSchedule.max_falls` 0);
+falls (:attr:`octcl.host.stage3.refine.RefineSchedule.max_falls` 0);
 ``long-steps`` and ``long-steps-no-fall-guard``, the main run's learning
 rates ``LONG_STEPS`` times the default's, with and without that guard (a
 scene the default's steps are too long for).
@@ -51,10 +51,10 @@ from pathlib import Path
 
 from bench_invert import development_set, panels_png
 from octcl._io import atomic_write
-from octcl.host.invert import invert
-from octcl.host.loss import ExactScore
-from octcl.host.refine import RefineSchedule, refine
-from octcl.host.target import read_target
+from octcl.host.pipeline.invert import invert
+from octcl.host.stage3.loss import ExactScore
+from octcl.host.stage3.refine import RefineSchedule, refine
+from octcl.host.pipeline.target import read_target
 from octcl.phantom import Phantom
 
 #: The main run's learning rates in the ``long-steps`` variants, times the default's.
@@ -157,7 +157,7 @@ def main(argv=None) -> int:
     if missing:
         parser.error(f"unknown or missing scans: {', '.join(missing)} (have {', '.join(targets)})")
 
-    from octcl._scanner_op import ScannerKernels
+    from octcl.device.scanner import ScannerKernels
 
     kernels = ScannerKernels()
     base = RefineSchedule(score_every=args.score_every).fixed_length()

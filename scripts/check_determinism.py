@@ -85,12 +85,13 @@ def check_stages(target_path: Path, regime: str, seed: int, field_iterations: in
     """The stages one by one (module docstring); False if the same inputs gave different bits."""
     import torch
 
-    from octcl._scanner_op import ScannerKernels
-    from octcl.host.decode import decode_field
-    from octcl.host.field import fit_field
-    from octcl.host.linear import decode_exact, retrieve_field
-    from octcl.host.loss import DisplayLoss, ExactScore
-    from octcl.host.target import read_target, target_scan
+    from octcl.device.scanner import ScannerKernels
+    from octcl.host.stage2.capped import decode_field
+    from octcl.host.stage1.display import fit_field
+    from octcl.host.stage1.projections import retrieve_field
+    from octcl.host.stage2.exact import decode_exact
+    from octcl.host.stage3.loss import DisplayLoss, ExactScore
+    from octcl.host.pipeline.target import read_target, target_scan
     from octcl.phantom import TARGET_ROWS
     from octcl.render import Rendering, render
 
@@ -173,7 +174,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     if args.field_iterations is None:
-        from octcl.host.invert import FIELD_ITERATIONS
+        from octcl.host.pipeline.invert import FIELD_ITERATIONS
 
         args.field_iterations = FIELD_ITERATIONS[args.regime]
     ok = check_stages(args.target, args.regime, args.seed, args.field_iterations, args.threads) \

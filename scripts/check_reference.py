@@ -11,7 +11,7 @@ pixels, the histogram of level differences (ours − official) and the
 rendering time.
 
 The reference orders depths as the scanner's NumPy classic ``np.argsort``
-(``numpy-introsort``, :mod:`octcl._depth_order`); ``--depth-order stable``
+(``numpy-introsort``, :mod:`octcl.device.depth_order`); ``--depth-order stable``
 replaces that step by a stable sort, ties in file order, to show what the
 order of tied depths is worth (docs/scanner.md, "Residual"). The reference
 module itself is not changed.

@@ -22,13 +22,14 @@ from __future__ import annotations
 import argparse
 import json
 
-from octcl._runtime import _cl, build_options, context_for, describe, kernel_source, select_device
-from octcl._scanner_op import WORK_GROUP_SIZE, KernelSettings, program_defines
+from octcl.device.programs import build_options, kernel_source
+from octcl.device.runtime import context_for, pyopencl_module, describe, select_device
+from octcl.device.scanner import WORK_GROUP_SIZE, KernelSettings, program_defines
 from octcl.config import DEFAULT_CONFIG
 
 
 def kernel_report(program, device) -> list[dict]:
-    cl = _cl()
+    cl = pyopencl_module()
     info = cl.kernel_work_group_info
     rows = []
     for kernel in program.all_kernels():
@@ -47,7 +48,7 @@ def main() -> None:
     parser.add_argument("--device", default=None, help="OpenCL device choice (see `octcl devices`)")
     parser.add_argument("--json", help="write the per-kernel table here")
     args = parser.parse_args()
-    cl = _cl()
+    cl = pyopencl_module()
     device = select_device(args.device)
     context, _ = context_for(device)
     nvidia = "nvidia" in device.vendor.lower()

@@ -67,7 +67,7 @@ import time
 
 import numpy as np
 
-from octcl._scanner_op import KernelSettings, ScannerKernels, contribution_ranges
+from octcl.device.scanner import KernelSettings, ScannerKernels, contribution_ranges
 from octcl.phantom import Phantom
 
 GPUS = {
@@ -127,7 +127,7 @@ def field_solve_seconds(work: dict, gpu: dict) -> float:
 def host_share_of_stage_1_s() -> float:
     """Seconds of the host's float64 work per stage-1 step on this machine: the share at aim after a step
     (one FieldOperator.apply and the rendering's levels), the dominant host work between device steps."""
-    from octcl.host.field import FieldOperator
+    from octcl.host.stage1.operator import FieldOperator
     from octcl.render import Rendering
 
     operator = FieldOperator()

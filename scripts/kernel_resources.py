@@ -23,9 +23,9 @@ the kernel's in vendor and OS; that is how Debian's libclc is built and is
 ignored when the architectures agree. The kernels compile warning-free today,
 so any other warning is new and worth a look.
 
-Build recipe: the defines come from ``octcl._runtime.build_options``,
-``octcl._scanner_op.program_defines`` and
-``octcl.host.field_kernels.program_defines`` (the functions octcl's own
+Build recipe: the defines come from ``octcl.device.programs.build_options``,
+``octcl.device.scanner.program_defines`` and
+``octcl.host.stage1.operator_device.program_defines`` (the functions octcl's own
 builds use), at the default scanner configuration (Nz = 256, Nx = 512; the
 field operator's work-groups of 64, as on any device that allows them); the
 language is OpenCL C 1.2 at -O3, as an OpenCL driver compiles it. libclc
@@ -107,11 +107,12 @@ from typing import Callable
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from octcl._runtime import build_options  # noqa: E402
-from octcl._scanner_op import KernelSettings, program_defines  # noqa: E402
+from octcl.device.programs import build_options
+from octcl.device.scanner import KernelSettings, program_defines
 from octcl.config import DEFAULT_CONFIG  # noqa: E402
-from octcl.host import display_kernels, field_kernels, lbfgs_device  # noqa: E402
-from octcl.host.field import lateral_taps  # noqa: E402
+from octcl.host.optim import lbfgs_device
+from octcl.host.stage1 import display_device as display_kernels, operator_device as field_kernels
+from octcl.host.stage1.operator import lateral_taps
 
 
 # ------------------------------------------------------------------ registry

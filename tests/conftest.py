@@ -58,7 +58,7 @@ def implementation_device(name: str):
     """The first device of the OpenCL implementation ``name`` that builds (PyPI's PoCL and the
     distribution's may both be there, and only one build on a given CPU); skips, with the reason,
     where none is installed or none can build on this machine."""
-    from octcl._runtime import implementation, list_devices, probe
+    from octcl.device.runtime import implementation, list_devices, probe
 
     devices = [device for _, device in list_devices() if implementation(device) == name]
     if not devices:

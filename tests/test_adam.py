@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from octcl.host.adam import Adam
+from octcl.host.optim.adam import Adam
 
 
 def test_adam_matches_the_textbook_update():

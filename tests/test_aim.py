@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from octcl._io import GREY_LUT
-from octcl.host.aim import FIRST_BATCH, PATIENCE, AimSearch
-from octcl.host.ceiling import WRITABLE, error_diffused
+from octcl.host.stage1.aim import FIRST_BATCH, PATIENCE, AimSearch
+from octcl.host.stage1.ceiling import WRITABLE, error_diffused
 
 
 def test_a_target_the_scanner_could_write_has_nothing_to_move():

@@ -263,9 +263,9 @@ def test_embedded_cluster_listens_on_loopback_only_and_workers_take_their_thread
                     pass
 
         def worker_settings(dask_worker):
-            from octcl.host.field import _available_cores
+            from octcl.host.threads import available_cores
 
-            return (os.environ["OMP_NUM_THREADS"], os.environ["POCL_MAX_PTHREAD_COUNT"], _available_cores(),
+            return (os.environ["OMP_NUM_THREADS"], os.environ["POCL_MAX_PTHREAD_COUNT"], available_cores(),
                     dict(dask_worker.state.total_resources))
 
         (settings,) = client.run(worker_settings).values()

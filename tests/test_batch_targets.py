@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from octcl.host.batch.targets import completed_report, find_scans, settings_record, sha256
-from octcl.host.refine import Phase, RefineSchedule
+from octcl.host.stage3.refine import Phase, RefineSchedule
 
 
 def touch(path, data=b"x"):

@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 
 from octcl._io import GREY_LUT
-from octcl.host.ceiling import (WRITABLE, Ceiling, aimed_levels, error_diffused, measure_ceiling, nearest_writable,
-                                writable_share)
+from octcl.host.stage1.ceiling import WRITABLE, Ceiling, aimed_levels, error_diffused, measure_ceiling, nearest_writable, writable_share
 
 #: The levels the colour map never writes (shared/physics.md §2, step 11).
 UNWRITABLE = (33, 37, 41, 45, 49, 53, 57, 61, 66, 74, 82, 90, 98, 106, 114, 122, 132, 148, 164, 180, 196, 212,

@@ -338,7 +338,7 @@ def test_invert_fixed_schedule_repeats_byte_for_byte(tmp_path, capsys, official_
     schedules in fresh processes and across thread counts.
     """
     import octcl
-    from octcl.host.target import read_target
+    from octcl.host.pipeline.target import read_target
 
     target = official_data / "Scan_Exp2_Layers_A.png"
     schedule = ["--iterations", 10, "--field-iterations", 20]
@@ -479,9 +479,9 @@ def test_invert_budget_starts_with_the_process():
     """``--time-budget`` counts from the process's start: a time before now, by at most the process's age."""
     import psutil
 
-    from octcl.cli import _process_started
+    from octcl.cli import process_started
 
-    started = _process_started()
+    started = process_started()
     age = time.time() - psutil.Process().create_time()
     assert time.monotonic() - age - 0.05 <= started <= time.monotonic()
 

@@ -5,8 +5,8 @@ import pytest
 
 from octcl import _reference as ref
 from octcl.config import ScannerConfig
-from octcl.host.decode import CAP_STEP, children_per_cell, decode_field
-from octcl.host.field import FieldOperator, cell_depths_um
+from octcl.host.stage2.capped import CAP_STEP, children_per_cell, decode_field
+from octcl.host.stage1.operator import FieldOperator, cell_depths_um
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 
 #: A small scanner (32 rows, 16 A-scans of 6 µm) for the reference renders.
@@ -153,7 +153,7 @@ def test_decode_refuses_bad_fields(change):
 
 @pytest.mark.parametrize("level", [0, 255])
 def test_flat_targets_decode_to_finite_phantoms(level):
-    from octcl.host.field import fit_field
+    from octcl.host.stage1.display import fit_field
 
     fit = fit_field(np.full(SMALL.shape, level, dtype=np.uint8), SMALL, iterations=10, threads=1)
     phantom = decode_field(fit.field, SMALL, max_scatterers=1000)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from octcl import _depth_order as D
+from octcl.device import depth_order as D
 from octcl import _reference as ref
 
 FIXTURE = Path(__file__).parent / "data" / "depth_order_numpy_1_24_4.npz"
@@ -175,7 +175,7 @@ def test_sort_keys_order_exactly_as_numpy_compares_doubles():
 
 
 def test_auto_falls_back_to_python_without_opencl(monkeypatch):
-    from octcl._runtime import OpenCLUnavailableError
+    from octcl.device.runtime import OpenCLUnavailableError
 
     def no_opencl(*args):
         raise OpenCLUnavailableError("no OpenCL platform found")

@@ -1,8 +1,8 @@
 """The display fit's step as OpenCL kernels (host/display_kernels.py) against its NumPy twins.
 
-The twins are :func:`octcl.host.field.display_loss` (itself checked against
+The twins are :func:`octcl.host.stage1.display_loss.display_loss` (itself checked against
 finite differences and torch's autograd in tests/test_field.py) and
-:class:`octcl.host.adam.Adam`. Each test runs on every OpenCL
+:class:`octcl.host.optim.adam.Adam`. Each test runs on every OpenCL
 implementation present, float32 and float64: PoCL and Intel's CPU runtime
 on a real scan's levels at the default scanner, Oclgrind on a small scanner
 (8 A-scans), failing on any report of its memory, race or API checks.
@@ -13,11 +13,14 @@ import pytest
 from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
 
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
-from octcl.host.adam import Adam
-from octcl.host.display_kernels import DisplayFitKernels
-from octcl.host.field import DisplayGoal, FieldOperator, display_loss, fit_field, target_magnitude
-from octcl.host.field_kernels import FieldKernels
-from octcl.host.target import read_target, target_scan
+from octcl.host.optim.adam import Adam
+from octcl.host.stage1.display_device import DisplayFitKernels
+from octcl.host.stage1.display import fit_field
+from octcl.host.stage1.display_loss import DisplayGoal, display_loss
+from octcl.host.stage1.levels import target_magnitude
+from octcl.host.stage1.operator import FieldOperator
+from octcl.host.stage1.operator_device import FieldKernels
+from octcl.host.pipeline.target import read_target, target_scan
 
 SMALL = ScannerConfig(a_scans=8, xmax_um=48.0)
 CASES = [(name, double) for name in ("pocl", "intel", "oclgrind") for double in (False, True)]

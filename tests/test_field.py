@@ -9,8 +9,10 @@ import pytest
 from octcl import _reference as ref
 from octcl._io import GREY_LUT, read_png_rgb, read_scan
 from octcl.config import ScannerConfig
-from octcl.host.field import (DisplayGoal, FieldOperator, _box3, _box3_adjoint, cell_depths_um, display_loss,
-                              fit_field, lateral_taps, target_display, target_levels, target_magnitude)
+from octcl.host.stage1.display import fit_field
+from octcl.host.stage1.display_loss import DisplayGoal, _box3, _box3_adjoint, display_loss
+from octcl.host.stage1.levels import target_display, target_levels, target_magnitude
+from octcl.host.stage1.operator import FieldOperator, cell_depths_um, lateral_taps
 from octcl.render import DISPLAY_SLOPE
 from octcl.phantom import Phantom
 
@@ -216,7 +218,7 @@ def test_fit_field_refuses_a_target_of_the_wrong_size():
 
 
 def test_fit_field_without_a_budget_takes_no_decision_from_the_clock(uniform_levels, slow_clock):
-    import octcl.host.field as field_module
+    import octcl.host.stage1.display as field_module
 
     fits = [fit_field(uniform_levels, iterations=8, time_budget_s=None, threads=1)]
     slow_clock(field_module)

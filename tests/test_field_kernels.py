@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
 
-from octcl._runtime import implementation
+from octcl.device.runtime import implementation
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
-from octcl.host.field_kernels import FieldKernels
+from octcl.host.stage1.operator_device import FieldKernels
 
 #: Oclgrind's scanner: 8 A-scans 6 µm apart, as tests/test_scanner_kernels.py's SMALL.
 SMALL = ScannerConfig(a_scans=8, xmax_um=48.0)

@@ -5,9 +5,10 @@ import pytest
 
 from octcl import _reference as ref
 from octcl.config import ScannerConfig
-from octcl.host.field_solve import (FieldSchedule, FieldSolve, FieldStep, default_schedules, display, hinge,
-                                    project)
-from octcl.host.linear import fit_levels, retrieve_field
+from octcl.host.stage1.backend import NumpyBackend
+from octcl.host.stage1.solve import FieldSchedule, FieldSolve, FieldStep, default_schedules, display, hinge, project
+from octcl.host.stage1.hinge import fit_levels
+from octcl.host.stage1.projections import retrieve_field
 from octcl.phantom import Phantom
 
 #: A small scanner (32 rows, 48 A-scans of 6 µm): each step in milliseconds.
@@ -49,7 +50,7 @@ def test_a_step_with_a_bad_share_is_refused():
 
 def test_the_steps_run_in_order_each_from_the_field_the_last_left(small_levels):
     """project then hinge: the same field as calling them in turn."""
-    solve = FieldSolve(small_levels, small_levels, SMALL, threads=1).run(project(30) + hinge(20))
+    solve = FieldSolve(small_levels, small_levels, NumpyBackend(SMALL, threads=1)).run(project(30) + hinge(20))
     projected = retrieve_field(small_levels, SMALL, iterations=30)
     by_hand = fit_levels(projected.field, small_levels, SMALL, iterations=20)
     np.testing.assert_array_equal(solve.field, by_hand.field)
@@ -58,7 +59,7 @@ def test_the_steps_run_in_order_each_from_the_field_the_last_left(small_levels):
 
 
 def test_a_step_that_loses_pixels_leaves_the_best_field_and_a_solve_stops_at_the_aim(small_levels):
-    solve = FieldSolve(small_levels, small_levels, SMALL, threads=1).run(project(60) + hinge(200))
+    solve = FieldSolve(small_levels, small_levels, NumpyBackend(SMALL, threads=1)).run(project(60) + hinge(200))
     assert solve.identical == solve.best_identical == 1.0  # the small target is reached
     reached = solve.field.copy()
     # A short display fit from an exact field loses pixels: the best field stays. Nothing after the aim is
@@ -68,7 +69,7 @@ def test_a_step_that_loses_pixels_leaves_the_best_field_and_a_solve_stops_at_the
     assert solve.history[2].name == "display" and not solve.history[2].kept and solve.history[2].identical < 0.999
     np.testing.assert_array_equal(solve.best_field, reached)
     assert solve.best_identical == 1.0 and solve.identical < 0.999
-    again = FieldSolve(small_levels, small_levels, SMALL, threads=1).run(project(60) + hinge(200) + display(5))
+    again = FieldSolve(small_levels, small_levels, NumpyBackend(SMALL, threads=1)).run(project(60) + hinge(200) + display(5))
     assert [record.name for record in again.history] == ["project", "hinge"]
 
 
@@ -77,7 +78,7 @@ def test_under_a_budget_each_step_gets_its_share(small_levels):
     hinge fit may reach the aim first), and the whole ends near the budget."""
     import time
 
-    solve = FieldSolve(small_levels, small_levels, SMALL, threads=1)
+    solve = FieldSolve(small_levels, small_levels, NumpyBackend(SMALL, threads=1))
     start = time.perf_counter()
     solve.run(display(10**5) + project(10**5) + hinge(10**5), time_budget_s=0.3)
     assert time.perf_counter() - start < 0.3 + 0.2
@@ -86,15 +87,15 @@ def test_under_a_budget_each_step_gets_its_share(small_levels):
 
 
 def test_the_aim_step_needs_a_score_and_a_field_at_its_aim(small_levels):
-    from octcl.host.field_solve import aim
+    from octcl.host.stage1.solve import aim
 
     plain = small_levels.copy()
     plain[::3, ::5] = 37  # unwritable: something to move
     with pytest.raises(ValueError, match="exact score"):
-        FieldSolve(plain, plain, SMALL, threads=1).run(project(2) + aim(3))
+        FieldSolve(plain, plain, NumpyBackend(SMALL, threads=1)).run(project(2) + aim(3))
 
     def no_score(_):
         raise AssertionError("the field is not at its aim yet: nothing to score")
 
-    solve = FieldSolve(plain, plain, SMALL, threads=1, score=no_score).run(project(2) + aim(3))
+    solve = FieldSolve(plain, plain, NumpyBackend(SMALL, threads=1), score=no_score).run(project(2) + aim(3))
     assert solve.best_identical < 1.0 and solve.history[-1].name == "aim" and solve.history[-1].iterations == 0

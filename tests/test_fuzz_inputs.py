@@ -34,7 +34,7 @@ import octcl.phantom
 from octcl._io import (MAX_IMAGE_PIXELS, PNG_SIGNATURE, ImageFormatError, decode_scan_levels, read_png_pixels,
                        read_scan_pixels)
 from octcl.config import ConfigError, ScannerConfig
-from octcl.host.target import decode_target, read_target
+from octcl.host.pipeline.target import decode_target, read_target
 from octcl.phantom import Phantom, PhantomError
 from octcl.scorer import _read_map_for_metrics
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from octcl._io import ImageFormatError, write_grey_png
-from octcl.host.invert import invert
-from octcl.host.refine import Phase, RefineSchedule
+from octcl.host.pipeline.invert import invert
+from octcl.host.stage3.refine import Phase, RefineSchedule
 from octcl.config import DEFAULT_CONFIG
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.scorer import COMPONENTS
@@ -136,8 +136,8 @@ def test_kill_leaves_a_complete_checkpoint(layers_path, tmp_path):
     # so the kill is likely to land during a write. The physical regime: the
     # linear one renders this scan exactly after stage 1 and stops there.
     code = (
-        "import octcl.host.invert as invert\n"
-        "from octcl.host.refine import Phase, RefineSchedule\n"
+        "import octcl.host.pipeline.invert as invert\n"
+        "from octcl.host.stage3.refine import Phase, RefineSchedule\n"
         "invert.CHECKPOINT_INTERVAL_S = 0.0\n"
         f"invert.invert({str(layers_path)!r}, {str(output)!r}, time_budget_s=120, regime='physical',\n"
         "              field_iterations=20,\n"
@@ -181,8 +181,7 @@ def test_a_deadline_run_that_took_no_decision_from_the_clock_repeats(tmp_path, l
 
 
 def test_stage_1_budget_counts_what_the_budget_has_lost_before_it():
-    from octcl.host.invert import (FIELD_BUDGET_CAP_S, FIELD_BUDGET_FRACTION, LINEAR_WRITE_RESERVE_S,
-                                   MIN_FIELD_BUDGET_S, field_budget_s)
+    from octcl.host.pipeline.invert import FIELD_BUDGET_CAP_S, FIELD_BUDGET_FRACTION, LINEAR_WRITE_RESERVE_S, MIN_FIELD_BUDGET_S, field_budget_s
 
     # Linear: all but the decode-and-write reserve and what the process's start took.
     assert field_budget_s("linear", 5.0, 0.7) == pytest.approx(5.0 - 0.7 - LINEAR_WRITE_RESERVE_S)
@@ -195,7 +194,7 @@ def test_stage_1_budget_counts_what_the_budget_has_lost_before_it():
 
 def test_budget_runs_from_the_start_it_is_given(layers_path, tmp_path):
     """A budget that began 2 s before the call leaves stage 1 2 s less; the write's time counts from that start."""
-    from octcl.host.invert import LINEAR_WRITE_RESERVE_S
+    from octcl.host.pipeline.invert import LINEAR_WRITE_RESERVE_S
 
     started = time.monotonic() - 2.0
     result = invert(layers_path, tmp_path / "out.txt", time_budget_s=6.0, report_path=tmp_path / "r.json",
@@ -211,7 +210,7 @@ def test_the_linear_regime_writes_its_phantom_before_importing_torch(layers_path
     output = tmp_path / "out.txt"
     code = (
         "import sys, json\n"
-        "from octcl.host.invert import invert\n"
+        "from octcl.host.pipeline.invert import invert\n"
         "seen = []\n"
         f"def progress(state, output={str(output)!r}):\n"
         "    import os\n"
@@ -227,10 +226,10 @@ def test_the_linear_regime_writes_its_phantom_before_importing_torch(layers_path
 
 def test_levels_equal_to_a_grey_target_score_exactly_one_as_the_scorer_computes_it(layers_path):
     """The shortcut of invert's lazy scorer: ExactScore itself gives 1.0 on every component for them."""
-    from octcl.host.field import target_levels
-    from octcl.host.invert import _LazyExactScore
-    from octcl.host.loss import ExactScore
-    from octcl.host.target import read_target, target_scan
+    from octcl.host.stage1.levels import target_levels
+    from octcl.host.pipeline.invert import _LazyExactScore
+    from octcl.host.stage3.loss import ExactScore
+    from octcl.host.pipeline.target import read_target, target_scan
 
     target = read_target(layers_path)
     levels = target_levels(target_scan(target))

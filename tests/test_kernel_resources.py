@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from octcl._runtime import build_options
-from octcl._scanner_op import WORK_GROUP_SIZE, KernelSettings, program_defines
+from octcl.device.programs import build_options
+from octcl.device.scanner import WORK_GROUP_SIZE, KernelSettings, program_defines
 from octcl.config import DEFAULT_CONFIG
-from octcl.host import field_kernels
-from octcl.host.field import FieldOperator
+from octcl.host.stage1 import operator_device as field_kernels
+from octcl.host.stage1.operator import FieldOperator
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "kernel_resources.py"

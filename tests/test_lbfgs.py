@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from octcl.host.lbfgs import minimise
+from octcl.host.optim.lbfgs import minimise
 
 
 def test_a_convex_quadratic_is_minimised():

@@ -13,12 +13,15 @@ import numpy as np
 import pytest
 from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
 
-from octcl._runtime import implementation
+from octcl.device.runtime import implementation
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
-from octcl.host import lbfgs, lbfgs_device, linear
-from octcl.host.field_kernels import FieldKernels
-from octcl.host.level_kernels import LevelKernels
-from octcl.host.linear_device import PROGRESS_EVERY, fit_levels_device, retrieve_field_device
+from octcl.host.optim import lbfgs, lbfgs_device
+from octcl.host.stage1 import hinge, levels as stage1_levels, projections as linear
+from octcl.host.stage1.operator_device import FieldKernels
+from octcl.host.stage1.levels_device import LevelKernels
+from octcl.host.stage1.backend import PROGRESS_EVERY, OpenCLBackend
+from octcl.host.stage1.hinge import fit_levels
+from octcl.host.stage1.projections import retrieve_field
 from octcl.render import Rendering
 
 #: Oclgrind's scanner: 8 A-scans 6 µm apart, as tests/test_field_kernels.py's SMALL.
@@ -79,13 +82,13 @@ def relative_error(ours: np.ndarray, theirs: np.ndarray) -> float:
 
 # ------------------------------------------------------------------ level_fit.cl
 def test_interval_difference_is_the_projection_less_the_field(ops):
-    """D = P_𝓜(A) − A as linear._project computes it, pixels below, inside and above their intervals and
+    """D = P_𝓜(A) − A as stage1_levels.interval_projection computes it, pixels below, inside and above their intervals and
     at exactly 0 (projected to (l, 0)); in place the same bits."""
     kernels = ops.kernels
     a_scans, (lower, upper) = random_field(kernels.config, 1), random_bounds(kernels.config, 2)
     magnitude = np.abs(a_scans)
     assert (magnitude < lower).mean() > 0.2 and (magnitude > upper).mean() > 0.1
-    expected = linear._project(a_scans, lower, upper) - a_scans
+    expected = stage1_levels.interval_projection(a_scans, lower, upper) - a_scans
     device_bounds = ops.bounds_to_device(lower, upper)
     device_field = kernels.to_device(a_scans)
     ours = kernels.to_host(ops.interval_difference(device_field, *device_bounds))
@@ -104,7 +107,7 @@ def test_momentum_step_updates_the_field_and_extrapolates_the_next_point(ops):
     expected_field = ahead + linear.STEP * correction
     expected_ahead = expected_field + linear.MOMENTUM * (expected_field - field)
     device_field, device_ahead = kernels.to_device(field), kernels.to_device(ahead)
-    ops.momentum_step(device_field, device_ahead, kernels.to_device(correction))
+    ops.momentum_step(device_field, device_ahead, kernels.to_device(correction), linear.STEP, linear.MOMENTUM)
     assert relative_error(kernels.to_host(device_field), expected_field) < tolerance(ops)
     assert relative_error(kernels.to_host(device_ahead), expected_ahead) < tolerance(ops)
 
@@ -113,7 +116,7 @@ def test_hinge_residual_and_its_half_squared_sum(ops):
     """r = A − P_𝓜(A) and ½·Σ|r|² in a device scalar, the same bits at every call."""
     kernels = ops.kernels
     a_scans, (lower, upper) = random_field(kernels.config, 6), random_bounds(kernels.config, 7)
-    residual = a_scans - linear._project(a_scans, lower, upper)
+    residual = a_scans - stage1_levels.interval_projection(a_scans, lower, upper)
     device_bounds = ops.bounds_to_device(lower, upper)
     device_field, out = kernels.to_device(a_scans), kernels.empty()
     scalars = ops.vectors.scalars(3)
@@ -199,7 +202,7 @@ def test_vector_updates(ops):
 # ------------------------------------------------------------- device L-BFGS
 def small_hinge(seed: int):
     """fit_levels' problem on SMALL: a field's own levels from the field disturbed, its bounds anchored."""
-    from octcl.host.field import FieldOperator
+    from octcl.host.stage1.operator import FieldOperator
 
     rng = np.random.default_rng(seed)
     truth = rng.normal(size=SMALL.shape) + 1j * rng.normal(size=SMALL.shape)
@@ -218,11 +221,11 @@ def test_device_lbfgs_takes_the_host_iterates_in_float64(implementation_name):
     twin = kernels.twin
     magnitude = np.abs(twin.apply(start))
     start = start / magnitude.max()
-    lower, upper = linear._anchored_bounds(levels, magnitude / magnitude.max(), linear.INTERVAL_MARGIN)
+    lower, upper = stage1_levels.anchored_bounds(levels, magnitude / magnitude.max(), stage1_levels.INTERVAL_MARGIN)
 
     def host_loss(field):
         a_scans = twin.apply(field)
-        residual = a_scans - linear._project(a_scans, lower, upper)
+        residual = a_scans - stage1_levels.interval_projection(a_scans, lower, upper)
         return 0.5 * float(np.vdot(residual, residual).real), twin.adjoint(residual)
 
     device_lower, device_upper = ops.bounds_to_device(lower, upper)
@@ -292,18 +295,18 @@ def intel_small(request):
 def test_device_steps_stop_at_their_budget_and_refuse_no_iterations(intel_small):
     start, levels = small_hinge(13)
     calls = []
-    fit = retrieve_field_device(intel_small, levels, iterations=25, progress=lambda i, n: calls.append((i, n)))
+    fit = retrieve_field(levels, backend=OpenCLBackend(kernels=intel_small), iterations=25, progress=lambda i, n: calls.append((i, n)))
     assert fit.iterations == 25 and fit.clock_steps == 0
     assert calls == [(taken, 25) for taken in range(PROGRESS_EVERY, 25, PROGRESS_EVERY)] + [(25, 25)]
     assert np.abs(intel_small.twin.apply(fit.field)).max() == pytest.approx(1.0)
     calls.clear()
-    cut = retrieve_field_device(intel_small, levels, iterations=10_000, time_budget_s=0.0,
+    cut = retrieve_field(levels, backend=OpenCLBackend(kernels=intel_small), iterations=10_000, time_budget_s=0.0,
                                 progress=lambda i, n: calls.append((i, n)))
     assert cut.clock_steps == 1 and cut.iterations == 1 and calls == [(1, 10_000)]
-    cut = fit_levels_device(intel_small, start, levels, iterations=10_000, time_budget_s=0.0)
+    cut = fit_levels(start, levels, backend=OpenCLBackend(kernels=intel_small), iterations=10_000, time_budget_s=0.0)
     assert cut.clock_steps == 1 and cut.iterations == 1
-    for step in (lambda: retrieve_field_device(intel_small, levels, iterations=0),
-                 lambda: fit_levels_device(intel_small, start, levels, iterations=0)):
+    for step in (lambda: retrieve_field(levels, backend=OpenCLBackend(kernels=intel_small), iterations=0),
+                 lambda: fit_levels(start, levels, backend=OpenCLBackend(kernels=intel_small), iterations=0)):
         with pytest.raises(ValueError, match="iterations"):
             step()
 
@@ -311,17 +314,17 @@ def test_device_steps_stop_at_their_budget_and_refuse_no_iterations(intel_small)
 def test_device_steps_repeat_to_the_bit(intel_small):
     """Fixed-order sums and no atomics: the same field from the same call."""
     start, levels = small_hinge(14)
-    for step in (lambda: retrieve_field_device(intel_small, levels, iterations=20),
-                 lambda: fit_levels_device(intel_small, start, levels, iterations=15)):
+    for step in (lambda: retrieve_field(levels, backend=OpenCLBackend(kernels=intel_small), iterations=20),
+                 lambda: fit_levels(start, levels, backend=OpenCLBackend(kernels=intel_small), iterations=15)):
         np.testing.assert_array_equal(step().field, step().field)
 
 
 @pytest.fixture(scope="module")
 def layers(official_data):
     """Exp2 Layers A's levels, their aim, and the host's 100 projections from its regularised start."""
-    from octcl.host.ceiling import aimed_levels
-    from octcl.host.field import target_levels
-    from octcl.host.target import read_target
+    from octcl.host.stage1.ceiling import aimed_levels
+    from octcl.host.stage1.levels import target_levels
+    from octcl.host.pipeline.target import read_target
 
     levels = target_levels(read_target(official_data / "Scan_Exp2_Layers_A.png"))
     aim = aimed_levels(levels)
@@ -334,7 +337,7 @@ def test_device_projections_reach_the_hosts_share_at_aim(layers, double):
     the host's (96.7 % measured; the kernels pad the columns to 1024, the host to 525)."""
     levels, aim, host = layers
     kernels = FieldKernels(device=implementation_device("intel"), double=double)
-    fit = retrieve_field_device(kernels, levels, iterations=100, aim=aim)
+    fit = retrieve_field(levels, backend=OpenCLBackend(kernels=kernels), iterations=100, aim=aim)
     assert fit.iterations == 100 and fit.clock_steps == 0
     assert abs(fit.identical - host.identical) < 0.005
     a_scans = kernels.twin.apply(fit.field)
@@ -345,7 +348,7 @@ def test_device_projections_reach_the_hosts_share_at_aim(layers, double):
 @pytest.fixture(scope="module")
 def host_hinge(layers):
     levels, aim, host = layers
-    return linear.fit_levels(host.field, aim)
+    return hinge.fit_levels(host.field, aim)
 
 
 @pytest.mark.parametrize("double", [False, True], ids=["intel-float32", "intel-float64"])
@@ -354,10 +357,10 @@ def test_device_hinge_fit_puts_every_pixel_at_its_aim_as_the_host_one(layers, ho
     measured for each), the device's within a level check of the host's."""
     levels, aim, host = layers
     kernels = FieldKernels(device=implementation_device("intel"), double=double)
-    ours = fit_levels_device(kernels, host.field, aim)
+    ours = fit_levels(host.field, aim, backend=OpenCLBackend(kernels=kernels))
     assert ours.identical == host_hinge.identical == 1.0
-    assert abs(ours.iterations - host_hinge.iterations) <= linear.LEVEL_CHECK_EVERY
-    assert ours.clock_steps == 0 and ours.iterations % linear.LEVEL_CHECK_EVERY == 0
+    assert abs(ours.iterations - host_hinge.iterations) <= hinge.LEVEL_CHECK_EVERY
+    assert ours.clock_steps == 0 and ours.iterations % hinge.LEVEL_CHECK_EVERY == 0
     a_scans = kernels.twin.apply(ours.field)
     assert np.abs(a_scans).max() == pytest.approx(1.0)
     assert np.array_equal(Rendering.from_a_scans(a_scans).levels, aim)

@@ -10,11 +10,13 @@ from hypothesis import strategies as st
 from octcl import _reference as ref
 from octcl._io import GREY_LUT
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
-from octcl.host.field import FieldOperator
-from octcl.host.field_solve import default_schedules, display, project
-from octcl.host.linear import (INTERVAL_MARGIN, LEVEL_CHECK_EVERY, LEVEL_FIT_ITERATIONS, SHADOW_BOUND,
-                               _carriers, decode_exact, fit_levels, level_magnitude_bounds, linear_start, rendered_cells, retrieve_field, row_depths_um, row_offsets_um,
-                               split_on_carriers)
+from octcl.host.stage1.operator import FieldOperator
+from octcl.host.stage1.solve import default_schedules, display, project
+from octcl.host.stage1.hinge import LEVEL_CHECK_EVERY, LEVEL_FIT_ITERATIONS, fit_levels
+from octcl.host.stage1.levels import INTERVAL_MARGIN, level_magnitude_bounds
+from octcl.host.stage1.projections import retrieve_field
+from octcl.host.stage1.start import linear_start
+from octcl.host.stage2.exact import SHADOW_BOUND, _carriers, decode_exact, rendered_cells, row_depths_um, row_offsets_um, split_on_carriers
 from octcl.phantom import Phantom
 from octcl.render import Rendering
 
@@ -203,7 +205,7 @@ def test_fit_levels_puts_every_pixel_at_its_level_and_the_brightest_at_one():
 def test_linear_start_stops_trying_once_a_candidate_renders_every_aimed_level(official_data):
     """On an official scan (the scanner rendered it), the first candidate renders every level: the
     half-length one is left out; without the hinge fit both run, neither at every level."""
-    from octcl.host.target import read_target, target_scan
+    from octcl.host.pipeline.target import read_target, target_scan
 
     levels = target_scan(read_target(official_data / "Scan_Exp2_Layers_A.png"))
     found = linear_start(levels, lambda rendered: 0.0, schedules=default_schedules(150), threads=1)
@@ -218,7 +220,7 @@ def test_retrieve_field_stays_bounded_on_an_official_scan(official_data):
     """At a full step (α = 1) the momentum iteration diverges on Uniform A (the field grows to ~1e93 and
     35 % of the levels are the target's); at α = 0.8 it converges (56 %), the field within a few times
     the rendering's norm."""
-    from octcl.host.target import read_target
+    from octcl.host.pipeline.target import read_target
 
     fit = retrieve_field(read_target(official_data / "Scan_Exp1_Uniform_A.png"))
     a_scans = FieldOperator().apply(fit.field)
@@ -240,7 +242,7 @@ def test_retrieve_field_is_deterministic_and_stops_at_its_budget():
 
 
 def test_energy_floor_is_a_normal_float32_amplitude():
-    from octcl.host.linear import ENERGY_FLOOR_PCT
+    from octcl.host.stage2.exact import ENERGY_FLOOR_PCT
 
     amplitude = math.sqrt(ENERGY_FLOOR_PCT / 100)
     assert amplitude > np.finfo(np.float32).tiny
@@ -259,7 +261,7 @@ def test_linear_start_keeps_the_best_scoring_candidate():
     assert found.schedule == schedules[1] and found.clock_steps == 0 and found.threads == 1
     assert calls[-1] == (35 + 60, 35 + 60)
     # The chosen field is the second candidate's, as its steps made it.
-    from octcl.host.field import fit_field
+    from octcl.host.stage1.display import fit_field
 
     again = retrieve_field(levels, iterations=20, initial=fit_field(levels, iterations=5, time_budget_s=None,
                                                                     threads=1).field)

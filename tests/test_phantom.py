@@ -15,7 +15,7 @@ import octcl._io
 import octcl.phantom
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import (MAX_ROW_BYTES, Phantom, PhantomError, _format_rows, _parse_rows, _parse_rows_exact,
-                           _round_significant)
+                           round_significant)
 
 SMALL = ScannerConfig(max_scatterers=5)
 
@@ -114,8 +114,8 @@ def test_written_text_is_pythons_e_format(digits):
 def test_round_significant_is_percent_e_read_back(digits):
     values = awkward_values(np.random.default_rng(100 + digits), 2000)
     expected = np.array([float(f"%.{digits - 1}e" % v) for v in values.tolist()])
-    np.testing.assert_array_equal(_round_significant(values, digits), expected)
-    assert np.array_equal(np.signbit(_round_significant(values, digits)), np.signbit(expected))
+    np.testing.assert_array_equal(round_significant(values, digits), expected)
+    assert np.array_equal(np.signbit(round_significant(values, digits)), np.signbit(expected))
 
 
 @pytest.mark.parametrize("digits", [4, 6, 7, 9, 12, 17])

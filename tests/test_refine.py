@@ -11,9 +11,9 @@ from scipy.ndimage import gaussian_filter
 
 from octcl._io import GREY_LUT, read_png_rgb, read_scan
 from octcl._reference import quantise
-from octcl.host.loss import QUANTISER_SLOPE, DisplayLoss, ExactScore, LossWeights, scan_of_levels
-from octcl.host.refine import MAX_ENERGY_PCT, Phase, RefineSchedule, refine, saved_precision
-from octcl.host.target import read_target
+from octcl.host.stage3.loss import QUANTISER_SLOPE, DisplayLoss, ExactScore, LossWeights, scan_of_levels
+from octcl.host.stage3.refine import MAX_ENERGY_PCT, Phase, RefineSchedule, refine, saved_precision
+from octcl.host.pipeline.target import read_target
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.scorer import COMPONENTS, score
 
@@ -43,8 +43,8 @@ def uniform_levels(official_data):
 @pytest.fixture(scope="module")
 def stage2_phantom(layers_path):
     """A short stage 1 + 2 of the Layers scan (few scatterers, so kernels are quick)."""
-    from octcl.host.decode import decode_field
-    from octcl.host.field import fit_field
+    from octcl.host.stage2.capped import decode_field
+    from octcl.host.stage1.display import fit_field
 
     fit = fit_field(read_scan(layers_path, SCAN_SHAPE), iterations=150, time_budget_s=8.0)
     return decode_field(fit.field, max_scatterers=60_000, seed=0)
@@ -155,7 +155,7 @@ def test_exact_score_matches_the_scorer_on_saved_files(layers_path, uniform_leve
 
     The target as read from the official grey RGBA file and from a grey
     PNG of the same levels, which the metric reads differently
-    (:mod:`octcl.host.target`).
+    (:mod:`octcl.host.pipeline.target`).
     """
     from PIL import Image
 
@@ -294,7 +294,7 @@ def test_a_fallen_main_run_goes_back_to_its_best(stage2_phantom, layers_target, 
     gains) with fresh moments, and the learning rates are halved. A third
     fall is not acted on.
     """
-    from octcl.host.refine import FALL_LR_FACTOR, _Refiner
+    from octcl.host.stage3.refine import FALL_LR_FACTOR, _Refiner
 
     steps = []
     original = _Refiner.step
@@ -398,7 +398,7 @@ def test_truncated_schedule_runs_by_counts_alone(stage2_phantom, layers_target, 
     changes nothing when neither a deadline nor a time-chosen thread count
     is involved.
     """
-    import octcl.host.refine as refine_module
+    import octcl.host.stage3.refine as refine_module
 
     whole = RefineSchedule(phases=(Phase(2, 0.01, 0.02, lpips=False),),
                            restarts=(Phase(4, 0.005, 0.01, lpips=False),), score_every=2)
@@ -420,7 +420,7 @@ def test_truncated_schedule_runs_by_counts_alone(stage2_phantom, layers_target, 
 
 
 def test_ceiling_fails_loudly(stage2_phantom, layers_target):
-    from octcl.host.refine import TimeBudgetExceeded
+    from octcl.host.stage3.refine import TimeBudgetExceeded
 
     schedule = RefineSchedule(phases=(Phase(5, 0.01, 0.02, lpips=False),), restarts=())
     with pytest.raises(TimeBudgetExceeded, match="in stage 3 \\(refine\\) after 0 of 5 iterations"):
@@ -431,7 +431,7 @@ def test_the_loss_is_the_same_whatever_thread_count_built_it(layers_target):
     """Stage 3 builds its loss at its first use, at the loss's thread count: the target's LPIPS
     features must not depend on it (without oneDNN, AlexNet's layers 2–5 differ between 1 and 2
     threads, which changed a fixed schedule's file with ``--threads``)."""
-    from octcl.host.target import target_scan
+    from octcl.host.pipeline.target import target_scan
 
     scan = target_scan(layers_target)
     display = np.clip(scan.astype(np.float64) + 0.01 * np.random.default_rng(0).standard_normal(scan.shape), 0, 1)

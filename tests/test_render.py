@@ -3,8 +3,8 @@
 import numpy as np
 
 from octcl import Phantom, render
-from octcl._runtime import select_device
-from octcl._scanner_op import KernelSettings, ScannerKernels
+from octcl.device.runtime import select_device
+from octcl.device.scanner import KernelSettings, ScannerKernels
 from octcl.config import DEFAULT_CONFIG
 from octcl.render import _scanner_kernels
 

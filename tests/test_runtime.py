@@ -20,9 +20,9 @@ import warnings
 
 import pytest
 
-from octcl import _runtime
-from octcl._runtime import (OpenCLUnavailableError, build, choose_device, context_for, implementation,
-                            list_devices, probe)
+from octcl.device import runtime as _runtime
+from octcl.device.programs import build
+from octcl.device.runtime import OpenCLUnavailableError, choose_device, context_for, implementation, list_devices, probe
 from octcl.cli import main
 
 #: What PoCL 3.0 (PyPI's pocl-binary-distribution, LLVM 14) logs for any build on an AMD Zen 5 CPU: LLVM 14
@@ -70,7 +70,7 @@ def break_builds_of(monkeypatch, broken: set[str]):
 def pocl_as_on_zen5(monkeypatch):
     """Every PoCL build fails as PyPI's PoCL 3.0 fails on an AMD Zen 5 CPU (:data:`POCL_ZEN5_LOG`)."""
     real_build = _runtime._quiet_build
-    cl = _runtime._cl()
+    cl = _runtime.pyopencl_module()
 
     def build_as_on_zen5(context, source, options, device, **kwargs):
         if implementation(device) == "pocl":
@@ -201,14 +201,14 @@ def test_named_devices_and_types(fresh_probes):
     for key, device in list_devices():
         assert choose_device(key)[0] == device
         assert implementation(choose_device(implementation(device))[0]) == implementation(device)
-    assert choose_device("cpu")[0].type & _runtime._cl().device_type.CPU
+    assert choose_device("cpu")[0].type & _runtime.pyopencl_module().device_type.CPU
     with pytest.raises(OpenCLUnavailableError, match="no OpenCL device matches 'no-such-device'"):
         choose_device("no-such-device")
 
 
 def test_successful_builds_print_nothing_and_log_under_debug(caplog):
     device, _ = choose_device()
-    cl = _runtime._cl()
+    cl = _runtime.pyopencl_module()
     context, _ = context_for(device)
     # A source not built before, so that pyopencl's binary cache cannot skip the compiler and its log.
     source = (f"#warning octcl test remark {uuid.uuid4().hex}\n"

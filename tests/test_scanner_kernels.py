@@ -23,7 +23,7 @@ from octcl import _reference as ref
 from octcl.config import ScannerConfig
 from octcl.phantom import Phantom
 from octcl.render import Rendering, display_vjp, render
-from octcl._scanner_op import VARIANTS, KernelSettings, ScannerKernels
+from octcl.device.scanner import VARIANTS, KernelSettings, ScannerKernels
 
 #: A narrow scanner (64 A-scans, 384 µm) keeps the float64 reference fast.
 NARROW = ScannerConfig(a_scans=64, xmax_um=384.0)
@@ -407,7 +407,7 @@ def test_variant_follows_the_device_type(kernels32):
     """'auto' takes the work-item variant on a CPU device; a GPU would get the work-group one."""
     import pyopencl as cl
 
-    from octcl._scanner_op import sort_device_for
+    from octcl.device.scanner import sort_device_for
 
     automatic = ScannerKernels(NARROW)
     assert automatic.device.type & cl.device_type.CPU and automatic.variant == "work-item"
@@ -430,7 +430,7 @@ class _FakeGpu:
 
 
 def test_single_work_item_sort_refuses_a_gpu():
-    from octcl._depth_order import introsort_argsort_opencl
+    from octcl.device.depth_order import introsort_argsort_opencl
 
     with pytest.raises(ValueError, match="CPU devices only"):
         introsort_argsort_opencl(np.array([3, 1, 1, 2] * 10), device=_FakeGpu())
@@ -444,7 +444,7 @@ def test_variant_is_validated():
 # ---------------------------------------------------------- contribution windows
 def test_contribution_ranges_follow_the_reference_window_test():
     """The host's window ends are exactly the A-scans the reference's own float64 test admits."""
-    from octcl._scanner_op import contribution_ranges
+    from octcl.device.scanner import contribution_ranges
 
     config = ScannerConfig()
     rng = np.random.default_rng(17)

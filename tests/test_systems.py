@@ -26,7 +26,7 @@ from pathlib import Path
 import pytest
 from packaging.requirements import Requirement
 
-from octcl import _runtime
+from octcl.device import runtime as _runtime
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -124,7 +124,7 @@ class _Device:
 
     @property
     def double_fp_config(self):
-        raise _runtime._cl().LogicError("clGetDeviceInfo failed: INVALID_VALUE")
+        raise _runtime.pyopencl_module().LogicError("clGetDeviceInfo failed: INVALID_VALUE")
 
 
 def test_a_device_without_fp64_is_said_to_have_none_without_asking_its_config():
@@ -176,7 +176,7 @@ FAKE_WINDOWS = textwrap.dedent('''
 
 
 def test_the_package_and_its_main_commands_run_with_the_platform_faked_as_windows(tmp_path):
-    _runtime._cl()  # the parent's registered implementations, handed to the child: its loader is Linux's
+    _runtime.pyopencl_module()  # the parent's registered implementations, handed to the child: its loader is Linux's
     official = ROOT / "data" / "official"
     phantom, scan = tmp_path / "phantom.txt", tmp_path / "scan.png"
     commands = [
@@ -192,7 +192,7 @@ def test_the_package_and_its_main_commands_run_with_the_platform_faked_as_window
                             capture_output=True, text=True, env=environment, timeout=300, cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     outcome = json.loads(next(line for line in result.stdout.splitlines() if line.startswith("RESULT "))[7:])
-    assert {"octcl.host.invert", "octcl.host.batch.runner", "octcl.cli", "octcl._runtime"} <= set(outcome["imported"])
+    assert {"octcl.host.pipeline.invert", "octcl.host.batch.runner", "octcl.cli", "octcl.device.runtime"} <= set(outcome["imported"])
     assert outcome["statuses"] == {"phantom": 0, "render": 0, "maps": 0, "score": 0, "devices": 0, "invert": 0}
     assert outcome["worker"].rsplit(":", 1)[0] == platform.node() and outcome["phantom_bytes"] > 0
     invert = json.loads(result.stdout[result.stdout.index("{"):result.stdout.index("RESULT ")])

@@ -6,7 +6,7 @@ from PIL import Image
 
 from octcl import scorer
 from octcl._io import ImageFormatError, read_png_pixels, read_scan, write_grey_png
-from octcl.host.target import check_target, read_target, target_scan, target_struct_for_metrics
+from octcl.host.pipeline.target import check_target, read_target, target_scan, target_struct_for_metrics
 
 SHAPE = (256, 512)
 
@@ -122,7 +122,7 @@ def test_npy_that_is_not_a_target_is_refused_naming_the_file(tmp_path, array, me
 def test_png_targets_read_and_fail_as_before(tmp_path, target_files):
     """Reading the file's bytes once changes nothing for PNGs: the same arrays, the same messages."""
     from octcl.config import DEFAULT_CONFIG
-    from octcl.host.target import _target_of_pixels
+    from octcl.host.pipeline.target import _target_of_pixels
 
     for kind, path in target_files.items():  # the earlier reading: the PNG's pixels, then the smaller form
         before = _target_of_pixels(read_png_pixels(path, SHAPE), DEFAULT_CONFIG, str(path))

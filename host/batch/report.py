@@ -53,7 +53,7 @@ def _png(image) -> bytes:
 def comparison_panel(target: np.ndarray, render_levels: np.ndarray, title: str) -> bytes:
     """PNG of the target (top row) and the rendering (bottom row), each as scan, OAC, SC and RSC.
 
-    ``target`` is in either form of :mod:`octcl.host.target`, ``render_levels``
+    ``target`` is in either form of :mod:`octcl.host.pipeline.target`, ``render_levels``
     the rendering's (Nz, Nx) levels. Full resolution, one pixel per scan
     pixel, so speckle can be compared; the maps are the official
     processor's (:func:`octcl.maps.map_levels`) of the scan the task
@@ -63,7 +63,7 @@ def comparison_panel(target: np.ndarray, render_levels: np.ndarray, title: str) 
 
     from octcl.maps import map_levels
 
-    from ..target import target_scan
+    from ..pipeline.target import target_scan
 
     rows = []
     for image in (target, render_levels):

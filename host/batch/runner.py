@@ -69,7 +69,7 @@ class OneScanPerWorker(WorkerPlugin):
 
     On each worker (those there now and those that join later): one unit of
     :data:`SCAN_RESOURCE`, and ``OMP_NUM_THREADS`` (torch, and octcl's
-    thread choice, :func:`octcl.host.field._available_cores`) and
+    thread choice, :func:`octcl.host.threads.available_cores`) and
     ``POCL_MAX_PTHREAD_COUNT`` (the PoCL CPU device, unless already set) set
     to the worker's thread count. Dask's nanny sets ``OMP_NUM_THREADS=1``
     in every worker whatever its thread count, so ``dask worker
@@ -163,13 +163,13 @@ def connect(scheduler: str | None = None, workers: int | None = None, threads_pe
     import dask
     from distributed import Client, LocalCluster
 
-    from ..field import _available_cores
+    from ..threads import available_cores
 
     check_cluster_options(scheduler, workers, threads_per_worker)
     cluster = None
     if scheduler is None:
         threads = threads_per_worker or DEFAULT_THREADS_PER_WORKER
-        workers = workers or max(1, _available_cores() // threads)
+        workers = workers or max(1, available_cores() // threads)
         with dask.config.set({"distributed.scheduler.allowed-failures": retries,
                               "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True,
@@ -269,7 +269,7 @@ def invert_batch(targets_dir, out_dir, time_budget_s: float = 600.0, seed: int =
         ``summary.csv``, ``summary.json``, ``report.html``
         (:mod:`octcl.host.batch.report`).
     time_budget_s, seed, **invert_options
-        Passed to :func:`octcl.host.invert.invert` for every scan.
+        Passed to :func:`octcl.host.pipeline.invert.invert` for every scan.
     workers, threads_per_worker, scheduler, security, retries
         The cluster (:func:`connect`) and how often a scan is retried.
     force : bool

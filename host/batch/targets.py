@@ -11,7 +11,7 @@ entered. Each scan's outputs mirror its place in the tree under ``--out``:
 
 A scan is done, and skipped by the next run, when its report records a
 :func:`settings_record` equal to this run's (octcl version, time budget,
-seed, :func:`octcl.host.invert.invert` options) and the SHA-256 of the
+seed, :func:`octcl.host.pipeline.invert.invert` options) and the SHA-256 of the
 target bytes it was inverted from, and the phantom file's SHA-256 is the one
 the report recorded. The report is written last, each file atomically, so a
 run killed at any moment leaves either a done scan or one that is redone.
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from octcl._io import SCAN_SUFFIXES
-from octcl.scorer import _MAP_FILE_SUFFIXES
+from octcl.scorer import MAP_FILE_SUFFIXES
 
 #: Files a batch writes for each scan, by kind: the phantom, invert's report
 #: (with the batch record), the target/rendering comparison panel and the
@@ -61,7 +61,7 @@ class Scan:
 
 def _is_target(file_name: str) -> bool:
     return (file_name.endswith(SCAN_SUFFIXES) and not file_name.startswith(".")
-            and not file_name.endswith(_MAP_FILE_SUFFIXES)
+            and not file_name.endswith(MAP_FILE_SUFFIXES)
             and not file_name.endswith(tuple(OUTPUT_SUFFIXES.values())))
 
 

@@ -1,8 +1,8 @@
 """One scan of a batch, as a Dask worker runs it: target bytes in, phantom and report bytes out.
 
 Nothing here touches the client's files: the target arrives as the file's
-bytes, is decoded and checked here (:func:`octcl.host.target.decode_target`,
-which reads the bytes as :func:`octcl.host.target.read_target` reads the
+bytes, is decoded and checked here (:func:`octcl.host.pipeline.target.decode_target`,
+which reads the bytes as :func:`octcl.host.pipeline.target.read_target` reads the
 file, so a scan inverts the same in a batch as on its own), inverted into the worker's own
 scratch folder, and the phantom, its report and two pictures go back to the
 client, which writes them. So workers need octcl and nothing else: no shared
@@ -42,7 +42,7 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     data : bytes
         The target file's contents.
     time_budget_s, seed, options
-        :func:`octcl.host.invert.invert`'s budget, seed and other keyword
+        :func:`octcl.host.pipeline.invert.invert`'s budget, seed and other keyword
         options, passed on unchanged.
 
     Returns
@@ -61,7 +61,7 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     Notes
     -----
     torch runs with as many threads as the process may use
-    (:func:`octcl.host.field._available_cores`: a Dask worker's thread
+    (:func:`octcl.host.threads.available_cores`: a Dask worker's thread
     count, set by :class:`octcl.host.batch.runner.OneScanPerWorker`). Other
     failures raise, so that Dask retries the scan.
     """
@@ -70,9 +70,9 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
     from octcl.render import render
 
-    from ..field import _available_cores
-    from ..invert import TimeBudgetExceeded, invert
-    from ..target import decode_target
+    from ..threads import available_cores
+    from ..pipeline.invert import TimeBudgetExceeded, invert
+    from ..pipeline.target import decode_target
     from .report import comparison_panel, score_plot
 
     started, cpu_started = time.monotonic(), time.process_time()
@@ -81,7 +81,7 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
         target = decode_target(data, config, name)
     except ImageFormatError as exc:
         return {"name": name, "error": str(exc)}
-    torch.set_num_threads(_available_cores())
+    torch.set_num_threads(available_cores())
     with tempfile.TemporaryDirectory(prefix="octcl-scan-", dir=_scratch_folder()) as scratch:
         phantom_path, report_path = Path(scratch) / "phantom.txt", Path(scratch) / "report.json"
         try:

@@ -1,6 +1,6 @@
-"""L-BFGS with its vectors on an OpenCL device: :mod:`octcl.host.lbfgs`'s algorithm, ``kernels/lbfgs.cl``'s operations.
+"""L-BFGS with its vectors on an OpenCL device: :mod:`octcl.host.optim.lbfgs`'s algorithm, ``kernels/lbfgs.cl``'s operations.
 
-The same method as :func:`octcl.host.lbfgs.minimise` (Nocedal 1980; Nocedal
+The same method as :func:`octcl.host.optim.lbfgs.minimise` (Nocedal 1980; Nocedal
 & Wright, "Numerical optimization", 2nd ed., 2006, algorithms 7.4 and 3.1):
 H_k the L-BFGS matrix of the last m pairs with H_k⁰ = γ·I, γ = ⟨s, y⟩/⟨y, y⟩
 of the newest pair, a backtracking line search on the Armijo condition
@@ -53,8 +53,8 @@ import math
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from .._runtime import build
-from .field_kernels import REDUCTION_WORK_GROUP, reduction_work_group
+from ...device.programs import build
+from ...device.programs import REDUCTION_WORK_GROUP, reduction_work_group
 from .lbfgs import ARMIJO, MAX_HALVINGS
 
 #: Reduction work-groups per compute unit, at least :data:`MIN_REDUCTION_GROUPS`.
@@ -103,7 +103,7 @@ class VectorKernels:
     Parameters
     ----------
     context, queue
-        As :func:`octcl._runtime.context_for` gives them; the queue in order.
+        As :func:`octcl.device.runtime.context_for` gives them; the queue in order.
     double : bool
         float64 kernels (cl_khr_fp64); default float32.
 
@@ -188,7 +188,7 @@ class VectorKernels:
 
 
 def minimise(vectors: VectorKernels, loss_and_gradient, start, iterations: int, memory: int = 20, callback=None):
-    """Minimise a loss over a device vector by L-BFGS (module docstring), as :func:`octcl.host.lbfgs.minimise`.
+    """Minimise a loss over a device vector by L-BFGS (module docstring), as :func:`octcl.host.optim.lbfgs.minimise`.
 
     Parameters
     ----------

@@ -32,10 +32,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _reference as ref
-from ._depth_order import depth_order
-from ._runtime import build, context_for, select_device
-from .config import DEFAULT_CONFIG, ScannerConfig
+from .. import _reference as ref
+from .depth_order import depth_order
+from .programs import build
+from .runtime import context_for, select_device
+from ..config import DEFAULT_CONFIG, ScannerConfig
 
 #: The kernel variants (``kernels/scanner.cl``); "auto" picks by device type.
 VARIANTS = ("work-item", "work-group")
@@ -141,7 +142,7 @@ def sort_device_for(device):
     """
     if _is_cpu(device):
         return device
-    from ._runtime import OpenCLUnavailableError
+    from .runtime import OpenCLUnavailableError
 
     try:
         return select_device("cpu")
@@ -355,7 +356,7 @@ class ScannerKernels:
     def _depth_order(self, z_um: np.ndarray) -> np.ndarray:
         """All scatterers in the scanner's depth order, NumPy's classic argsort.
 
-        See :func:`octcl._depth_order.depth_order`, run on :attr:`sort_device`
+        See :func:`octcl.device.depth_order.depth_order`, run on :attr:`sort_device`
         (:func:`sort_device_for`). During refinement depths move little
         between calls, so the previous order is passed as the guess: the sort
         that looks for ties is then close to linear, and with none found it

@@ -6,7 +6,7 @@ The unknowns are, per scatterer j, the depth z_j (µm) and u_j = ln E_j (E in
 1. render: ``ScannerKernels.set_phantom`` (host sort into depth order and
    lateral bins) → ``forward(for_adjoint=True)`` (complex A-scans) →
    :meth:`octcl.render.Rendering.from_a_scans` (display D, 8-bit levels);
-2. the loss and ∂loss/∂D (:class:`octcl.host.loss.DisplayLoss`);
+2. the loss and ∂loss/∂D (:class:`octcl.host.stage3.loss.DisplayLoss`);
 3. back to the scatterers: :func:`octcl.render.display_vjp` (∂loss/∂A) →
    ``ScannerKernels.adjoint`` (∂loss/∂u_j, ∂loss/∂z_j);
 4. an Adam step (Kingma & Ba, "Adam: a method for stochastic optimization",
@@ -90,7 +90,7 @@ too (Uniform A and Layers A dip below their start at step 10 and are far
 above it at 20), so the guard is meant for the default's spacing of 20.
 
 The loss only stands in for the score, so progress is judged by the exact
-score (:class:`octcl.host.loss.ExactScore`, the mean of the eight official
+score (:class:`octcl.host.stage3.loss.ExactScore`, the mean of the eight official
 components of the rendered 8-bit scan). It is evaluated at checkpoints, and
 the refinement returns the best phantom it has scored. Restarts (fresh Adam
 moments at a lower learning rate, from the best phantom so far) keep the
@@ -121,13 +121,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
-from octcl.phantom import SIGNIFICANT_DIGITS, Phantom, _round_significant
+from octcl.phantom import SIGNIFICANT_DIGITS, Phantom, round_significant
 from octcl.render import Rendering, display_vjp
 
-from .adam import Adam
-from .field import _available_cores
+from ..optim.adam import Adam
+from ..threads import available_cores
 from .schedule import FALL_LR_FACTOR, MAX_ENERGY_PCT, STOP_RULES, Phase, RefineSchedule
-from .target import target_scan
+from ..pipeline.target import target_scan
 
 if TYPE_CHECKING:
     from .loss import DisplayLoss, ExactScore
@@ -242,14 +242,14 @@ def check_target_score(target_score) -> None:
 
 def saved_precision(values: np.ndarray) -> np.ndarray:
     """``values`` as the phantom file holds them: rounded to ``SIGNIFICANT_DIGITS`` as :meth:`Phantom.save` writes them."""
-    return _round_significant(values, SIGNIFICANT_DIGITS)
+    return round_significant(values, SIGNIFICANT_DIGITS)
 
 
 class TimeBudgetExceeded(RuntimeError):
     """A run with a fixed schedule reached its time ceiling before the schedule's end."""
 
 
-class _Clock:
+class RefineClock:
     """Deadline bookkeeping: does an operation of measured duration still fit?
 
     Without a deadline everything fits, and no decision depends on the clock;
@@ -356,7 +356,7 @@ class _Refiner:
         self.clock = clock
         self.timings = dict.fromkeys(("set_phantom", "forward", "loss", "adjoint", "adam", "exact_score"), 0.0)
         self.cpu_seconds = dict.fromkeys(self.timings, 0.0)
-        self.threads = _ThreadChooser(_available_cores()) if threads is None else _FixedThreads(threads)
+        self.threads = _ThreadChooser(available_cores()) if threads is None else _FixedThreads(threads)
 
     def loss(self, lpips: bool) -> "DisplayLoss":
         """The loss with or without its LPIPS terms, built at its first use.
@@ -445,7 +445,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         The starting phantom (stage 2); its x and y are kept. Energies of 0
         start at the energy floor e^{min_log_energy}.
     target : ndarray of uint8
-        The target B-scan (256×512) in either form of :mod:`octcl.host.target`.
+        The target B-scan (256×512) in either form of :mod:`octcl.host.pipeline.target`.
     schedule : RefineSchedule
         Phases, restarts, checkpoints and Adam settings.
     deadline : float, optional
@@ -454,7 +454,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         duration ends before it; the input phantom's own evaluation always
         runs. Without one, the schedule runs to its end and no decision is
         taken from the clock.
-    kernels : octcl._scanner_op.ScannerKernels, optional
+    kernels : octcl.device.scanner.ScannerKernels, optional
         Reuse compiled kernels (built for ``config`` if not given).
     config : ScannerConfig
     progress : callable, optional
@@ -466,7 +466,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     exact_score : callable, optional
         ``exact_score(levels)`` → the components and their ``mean``:
         :class:`ExactScore` of the target (the default), or one that
-        builds it at first use (:func:`octcl.host.invert.invert`'s).
+        builds it at first use (:func:`octcl.host.pipeline.invert.invert`'s).
     ceiling : float, optional
         ``time.monotonic()`` value past which :class:`TimeBudgetExceeded` is
         raised (checked before every iteration): a safety limit for runs
@@ -479,7 +479,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         Stop as soon as an exact evaluation reaches this score (in (0, 1]).
     aim : ndarray of uint8, optional
         The levels the start was made to render (stage 1's aim,
-        :func:`octcl.host.ceiling.aimed_levels`): if the input phantom
+        :func:`octcl.host.stage1.ceiling.aimed_levels`): if the input phantom
         renders every pixel at its aimed level, nothing is refined
         (``stop_reason`` ``ceiling``): every pixel the scanner can write is
         then at the target's level, and each unwritable one on the side
@@ -505,10 +505,10 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         ``target_score`` outside (0, 1].
     """
     started = time.monotonic()
-    clock = _Clock(deadline, ceiling)
+    clock = RefineClock(deadline, ceiling)
     check_target_score(target_score)
     if kernels is None:
-        from octcl._scanner_op import ScannerKernels
+        from octcl.device.scanner import ScannerKernels
 
         kernels = ScannerKernels(config)
     if exact_score is None:

@@ -155,7 +155,7 @@ def _introsort_kernel(context):
     """The built ``introsort_argsort`` kernel of ``kernels/depth_order.cl`` for ``context``."""
     import pyopencl as cl
 
-    from ._runtime import build
+    from .programs import build
 
     return cl.Kernel(build(context, "depth_order", (), False), "introsort_argsort")
 
@@ -164,7 +164,7 @@ def introsort_argsort_opencl(keys, device=None) -> np.ndarray:
     """NumPy's classic argsort of int64 ``keys`` by ``kernels/depth_order.cl``.
 
     One work-item on ``device``, a CPU device (a pyopencl device, or a
-    choice for :func:`octcl._runtime.select_device`; default: the first CPU
+    choice for :func:`octcl.device.runtime.select_device`; default: the first CPU
     device). Returns int64 indices, shape (n,).
 
     Raises
@@ -174,7 +174,7 @@ def introsort_argsort_opencl(keys, device=None) -> np.ndarray:
     """
     import pyopencl as cl
 
-    from ._runtime import context_for, select_device
+    from .runtime import context_for, select_device
 
     keys = np.ascontiguousarray(keys, dtype=np.int64)
     count = keys.size
@@ -186,7 +186,7 @@ def introsort_argsort_opencl(keys, device=None) -> np.ndarray:
         device = select_device(device or "cpu")
     if not device.type & cl.device_type.CPU:
         # One work-item on a GPU is one slow thread holding up the device:
-        # octcl._scanner_op.sort_device_for sends the sort to a CPU device.
+        # octcl.device.scanner.sort_device_for sends the sort to a CPU device.
         raise ValueError(f"the depth order is a single work-item kernel and runs on CPU devices only, "
                          f"not on {device.name.strip()}")
     context, queue = context_for(device)
@@ -253,7 +253,7 @@ def depth_order(z_um, *, backend: str = "auto", device=None, guess=None) -> np.n
     if backend == "python":
         return introsort_argsort_python(keys)
     if backend == "auto":
-        from ._runtime import OpenCLUnavailableError
+        from .runtime import OpenCLUnavailableError
 
         try:
             return introsort_argsort_opencl(keys, device)

@@ -1,14 +1,14 @@
 """Thin host-side op around ``kernels/level_fit.cl``: stage 1's level intervals on an OpenCL device.
 
 :class:`LevelKernels` runs, on the fields of a
-:class:`~octcl.host.field_kernels.FieldKernels` (A-scan by A-scan, (Nx, Nz)),
+:class:`~octcl.host.stage1.operator_device.FieldKernels` (A-scan by A-scan, (Nx, Nz)),
 the projection P_𝓜 onto the aimed levels' intervals [l, u] of
-:func:`octcl.host.linear.level_magnitude_bounds` (each pixel's magnitude
-clipped, its phase kept: :func:`octcl.host.linear._project`), the
-accelerated projections' update (:func:`octcl.host.linear.retrieve_field`)
+:func:`octcl.host.stage1.levels.level_magnitude_bounds` (each pixel's magnitude
+clipped, its phase kept: :func:`octcl.host.stage1.levels.interval_projection`), the
+accelerated projections' update (:func:`octcl.host.stage1.projections.retrieve_field`)
 and the hinge's residual r = A − P_𝓜(A) with ½·Σ|r|² (the loss of
-:func:`octcl.host.linear.fit_levels`), summed in a fixed order into a device
-scalar by :class:`octcl.host.lbfgs_device.VectorKernels`.
+:func:`octcl.host.stage1.hinge.fit_levels`), summed in a fixed order into a device
+scalar by :class:`octcl.host.optim.lbfgs_device.VectorKernels`.
 ``tests/test_level_kernels.py`` compares each kernel with NumPy in float64.
 """
 
@@ -16,10 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._runtime import build
-from .field_kernels import FieldKernels
-from .lbfgs_device import VectorKernels, program_defines
-from .linear import MOMENTUM, STEP
+from ...device.programs import build
+from .operator_device import FieldKernels
+from ..optim.lbfgs_device import VectorKernels, program_defines
 
 
 class LevelKernels:
@@ -61,9 +60,9 @@ class LevelKernels:
                                   out.data)
         return out
 
-    def momentum_step(self, field, ahead, correction, step: float = STEP, momentum: float = MOMENTUM):
-        """In place: F ← Y + α·X, then Y ← F_new + β·(F_new − F_old), X = ``correction``; returns its
-        event."""
+    def momentum_step(self, field, ahead, correction, step: float, momentum: float):
+        """In place: F ← Y + α·X, then Y ← F_new + β·(F_new − F_old), X = ``correction``, α = ``step``,
+        β = ``momentum``; returns its event."""
         real = self.kernels.real
         return self._momentum_step(self.kernels.queue, (self.pixels,), None, field.data, ahead.data,
                                    correction.data, real(step), real(momentum))

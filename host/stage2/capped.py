@@ -1,6 +1,6 @@
 """Stage 2 of the inversion: decode a complex field into a phantom within the row budget.
 
-A cell c of the field F (:mod:`octcl.host.field`; row n, A-scan i, centre
+A cell c of the field F (:mod:`octcl.host.stage1.display`; row n, A-scan i, centre
 depth z_n) with magnitude m_c = |F_c| and phase θ_c = arg F_c becomes K_c
 point scatterers ("children") on the A-scan line x = x_i:
 
@@ -72,10 +72,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import _reference as ref
-from ..config import DEFAULT_CONFIG, ScannerConfig
-from ..phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
-from .field import cell_depths_um
+from ... import _reference as ref
+from ...config import DEFAULT_CONFIG, ScannerConfig
+from ...phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
+from ..stage1.operator import cell_depths_um
 
 #: Factor by which the amplitude cap is raised until the children fit the budget.
 CAP_STEP = 1.1
@@ -216,7 +216,7 @@ def decode_field(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     Parameters
     ----------
     field : ndarray of complex, (Nz, Nx)
-        F on the cell grid of :class:`octcl.host.field.FieldOperator`; any
+        F on the cell grid of :class:`octcl.host.stage1.operator.FieldOperator`; any
         overall scale (the phantom is rescaled, see ``shadow_loss``).
     config : ScannerConfig
         Scanner geometry.

@@ -67,7 +67,7 @@ from octcl._msssim import msssim_torch
 from octcl.maps import map_levels, maps_torch
 
 from .schedule import LPIPS_TERMS, LossWeights
-from .target import target_scan, target_struct_for_metrics
+from ..pipeline.target import target_scan, target_struct_for_metrics
 
 #: ∂P/∂D of the straight-through quantiser: P = floor(256·D)/255 on average.
 QUANTISER_SLOPE = 256.0 / 255.0
@@ -299,8 +299,8 @@ class ExactScore:
     Parameters
     ----------
     target : ndarray of uint8
-        The target B-scan (256×512), in either form of :mod:`octcl.host.target`
-        (:func:`octcl.host.target.read_target` reads one from a PNG).
+        The target B-scan (256×512), in either form of :mod:`octcl.host.pipeline.target`
+        (:func:`octcl.host.pipeline.target.read_target` reads one from a PNG).
 
     Notes
     -----

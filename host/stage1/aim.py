@@ -1,12 +1,12 @@
 """Levels chosen for the score: which side of each unwritable level a phantom renders.
 
-Where the target has a level the scanner never writes (:mod:`octcl.host.ceiling`),
+Where the target has a level the scanner never writes (:mod:`octcl.host.stage1.ceiling`),
 a phantom renders L − 1 or L + 1. Error diffusion chooses the sides so that
-the local mean of the levels is kept (:func:`octcl.host.ceiling.error_diffused`,
+the local mean of the levels is kept (:func:`octcl.host.stage1.ceiling.error_diffused`,
 the start). :class:`AimSearch` then moves sides where the exact score
-(:class:`octcl.host.loss.ExactScore`) gains, guided by the gradient of the
+(:class:`octcl.host.stage3.loss.ExactScore`) gains, guided by the gradient of the
 loss's differentiable twins of the score's terms through the
-straight-through quantiser (:class:`octcl.host.loss.DisplayLoss` with
+straight-through quantiser (:class:`octcl.host.stage3.loss.DisplayLoss` with
 :data:`SCORE_WEIGHTS`).
 
 A round: with g = ∂loss/∂D at the display D(a) of the aim a (each level at
@@ -14,7 +14,7 @@ the centre of its display interval), the change of loss from moving pixel
 p to its other side a'_p is predicted as g_p·(D(a'_p) − D(a_p)); the
 ``batch`` pixels of most negative prediction move together, and the move
 is kept only if the exact score of the new levels is higher and the field
-can render them (a short hinge fit, :func:`octcl.host.linear.fit_levels`,
+can render them (a short hinge fit, :func:`octcl.host.stage1.hinge.fit_levels`,
 puts every pixel at its new level); a moved pixel is not moved again. The score is
 not additive over pixels (MS-SSIM and LPIPS see neighbourhoods, and the
 speckle-contrast maps the local spread), so the prediction holds for a few
@@ -38,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .ceiling import WRITABLE
-from .field import _display_of_level
-from .schedule import LossWeights
+from .levels import display_of_level
+from ..stage3.schedule import LossWeights
 
 #: The loss whose gradient proposes moves: the score's own terms, equally weighted (MS-SSIM of the
 #: Struct and OAC maps, LPIPS of all four; the loss has no MS-SSIM of SC and RSC), no pixel terms.
@@ -84,10 +84,10 @@ class AimSearch:
         other = (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)  # L ± 1 ↔ L ∓ 1
         if self._change is None or not np.array_equal(self._change[0], aim):
             if self._loss is None:
-                from .loss import DisplayLoss, scan_of_levels
+                from ..stage3.loss import DisplayLoss, scan_of_levels
 
                 self._loss = DisplayLoss(scan_of_levels(self.levels), SCORE_WEIGHTS)
-            display_of = _display_of_level()
+            display_of = display_of_level()
             gradient = self._loss(display_of[aim]).grad_display
             change = np.where(self.movable, gradient * (display_of[other] - display_of[aim]), 0.0).ravel()
             self._change = (aim.copy(), change)

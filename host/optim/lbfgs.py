@@ -1,6 +1,6 @@
 """L-BFGS (Nocedal, "Updating quasi-Newton matrices with limited storage", Math. Comp. 35, 1980) on one array.
 
-The hinge fit (:func:`octcl.host.linear.fit_levels`) minimises over the
+The hinge fit (:func:`octcl.host.stage1.hinge.fit_levels`) minimises over the
 262,144 real numbers of a 256×512 complex field. SciPy's L-BFGS-B (whose
 bounds machinery, unused here, runs over every variable) took 1.08 s for
 the 20 iterations that put every pixel of Uniform A at its level, this

@@ -49,7 +49,7 @@ def _pixels(target: np.ndarray) -> np.ndarray:
 
 
 def check_target(target, config: ScannerConfig = DEFAULT_CONFIG, name: str = "target") -> np.ndarray:
-    """``target`` as a uint8 array if it is a B-scan :func:`octcl.host.invert.invert` can invert.
+    """``target`` as a uint8 array if it is a B-scan :func:`octcl.host.pipeline.invert.invert` can invert.
 
     Raises
     ------

@@ -1,7 +1,7 @@
 """Thin host-side op around ``kernels/field_operator.cl``: stage 1's field operator on an OpenCL device.
 
 :class:`FieldKernels` applies H (= Hᴴ, the operator is self-adjoint) and
-the regularised inverse H⁺ of :class:`octcl.host.field.FieldOperator`, its
+the regularised inverse H⁺ of :class:`octcl.host.stage1.operator.FieldOperator`, its
 float64 NumPy twin, to fields kept on the device. A field lives there A-scan
 by A-scan, (Nx, Nz) in C order, so that each column is contiguous:
 :meth:`FieldKernels.to_device` and :meth:`FieldKernels.to_host` convert
@@ -30,10 +30,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _reference as ref
-from .._runtime import build, context_for, select_device
-from ..config import DEFAULT_CONFIG, ScannerConfig
-from .field import REGULARISATION, FieldOperator, lateral_taps
+from ... import _reference as ref
+from ...device.programs import build
+from ...device.runtime import context_for, select_device
+from ...config import DEFAULT_CONFIG, ScannerConfig
+from .operator import REGULARISATION, FieldOperator, lateral_taps
 
 #: Work-items of each FFT work-group (one radix-4 butterfly each per stage of the 256-point depth transforms).
 WORK_GROUP_SIZE = 64
@@ -69,11 +70,11 @@ class FieldKernels:
     config : ScannerConfig
         Nz must be a power of two.
     device : pyopencl.Device or str, optional
-        As :func:`octcl._runtime.select_device` takes it.
+        As :func:`octcl.device.runtime.select_device` takes it.
     double : bool
         float64 kernels (cl_khr_fp64); default float32.
     regularisation : float
-        λ of H⁺ relative to max|H|² (:data:`octcl.host.field.REGULARISATION`).
+        λ of H⁺ relative to max|H|² (:data:`octcl.host.stage1.operator.REGULARISATION`).
 
     Attributes
     ----------

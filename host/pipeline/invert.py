@@ -3,23 +3,23 @@
 1. A complex reflectivity field on the pixel grid whose linear
    (shadowing-free) rendering matches the target;
 2. point scatterers (x, y, z, E) that reproduce that field;
-3. :func:`octcl.host.refine.refine` — Adam on every scatterer's depth and
+3. :func:`octcl.host.stage3.refine.refine` — Adam on every scatterer's depth and
    log-energy through the OpenCL scanner and its adjoint, judged by the
    exact score.
 
 Stages 1–2 come in two regimes (:data:`REGIMES`):
 
-- ``linear`` (the default), :mod:`octcl.host.linear`: a schedule of named
-  steps (:mod:`octcl.host.field_solve`: a display fit, projections onto the
+- ``linear`` (the default), :mod:`octcl.host.stage1.projections`: a schedule of named
+  steps (:mod:`octcl.host.stage1.solve`: a display fit, projections onto the
   target's level intervals, a hinge fit and, where the target has levels
   the scanner cannot write, the aim step) finds the field in 4–5 s on two
   cores (a second candidate only where the first falls short), and an exact
   decode puts two rows in every cell at energies so small (E ≲ 1e−10 %)
   that shadowing changes no display level. The phantom is a numerical device:
   it renders as the target, but its energies are not tissue-like.
-- ``physical``, the published pipeline: :func:`octcl.host.field.fit_field`
+- ``physical``, the published pipeline: :func:`octcl.host.stage1.display.fit_field`
   (1500 Adam steps on the display, 10–12 s) and
-  :func:`octcl.host.decode.decode_field` (amplitude-capped children at
+  :func:`octcl.host.stage2.capped.decode_field` (amplitude-capped children at
   random elevations, shadowing ≤ 1e−4 per A-scan); slower and lower
   scoring, kept to reproduce the published method and for phantoms
   scaled like tissue.
@@ -61,9 +61,10 @@ from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 
-from .ceiling import WRITABLE, aimed_levels, measure_ceiling
-from .field import target_levels
-from .refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, _Clock, check_target_score, refine
+from ..stage1.backend import BACKENDS
+from ..stage1.ceiling import WRITABLE, aimed_levels, measure_ceiling
+from ..stage1.levels import target_levels
+from ..stage3.refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, RefineClock, check_target_score, refine
 from .target import check_target, read_target, target_scan, target_struct_for_metrics
 
 #: Least time between two checkpoint writes during refinement, in seconds.
@@ -72,8 +73,6 @@ from .target import check_target, read_target, target_scan, target_struct_for_me
 CHECKPOINT_INTERVAL_S = 20.0
 #: Stages 1–2 by name (module docstring), the default first.
 REGIMES = ("linear", "physical")
-#: Where stage 1 runs: the OpenCL device (default) or NumPy on the host (the reference).
-BACKENDS = ("opencl", "numpy")
 #: Share of the time budget stage 1 may use, and its cap in seconds. In the
 #: physical regime stage 1 usually ends first at its 1500 iterations (11–12 s
 #: on two idle cores); its length matters little for the end result: on
@@ -93,8 +92,8 @@ MIN_FIELD_BUDGET_S = 0.2
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
 #: over them); in the linear regime those of the first display fit, the
 #: second, run only where the first does not render every aimed level, has
-#: half as many (:func:`octcl.host.linear.linear_start`). Linear: with the
-#: hinge fit (:func:`octcl.host.linear.fit_levels`) after the projections,
+#: half as many (:func:`octcl.host.stage1.start.linear_start`). Linear: with the
+#: hinge fit (:func:`octcl.host.stage1.hinge.fit_levels`) after the projections,
 #: 300, 150 and 75 steps all put every pixel of the nine development scans
 #: at its aimed level with the same scores (0.5.0, docs/benchmarks.md);
 #: with 0.6.0's faster hinge fit and the aim step, 75 steps took 5.1 s of
@@ -160,12 +159,12 @@ class InvertResult:
     stopped_by_deadline : bool
         Stage 3 was cut short by the time budget.
     stop_reason : str
-        What ended stage 3 (:attr:`octcl.host.refine.RefineResult.stop_reason`):
+        What ended stage 3 (:attr:`octcl.host.stage3.refine.RefineResult.stop_reason`):
         ``schedule``, ``converged``, ``target score``, ``ceiling`` or ``deadline``.
     falls : list of int
         Stage-3 steps after which the main run fell and went back to the best
         phantom at lower learning rates
-        (:attr:`octcl.host.refine.RefineSchedule.max_falls`).
+        (:attr:`octcl.host.stage3.refine.RefineSchedule.max_falls`).
     seed : int
     regime : str
         Stages 1–2 (:data:`REGIMES`): ``linear`` or ``physical``.
@@ -192,7 +191,7 @@ class InvertResult:
         2 threads).
     ceiling : dict
         What the target allows, measured apart from the inversion
-        (:class:`octcl.host.ceiling.Ceiling`): ``writable_share``,
+        (:class:`octcl.host.stage1.ceiling.Ceiling`): ``writable_share``,
         ``nearest_score``, ``diffused_score``.
     exact_share : float
         Share of pixels the written phantom renders at the target's level.
@@ -403,7 +402,7 @@ class _CheckpointWriter:
 
 
 class _LazyExactScore:
-    """:class:`octcl.host.loss.ExactScore` of a target, built at its first use.
+    """:class:`octcl.host.stage3.loss.ExactScore` of a target, built at its first use.
 
     Building it imports torch and loads the LPIPS network (about 2 s on two
     cores); the linear regime writes its first phantom without either, and
@@ -429,7 +428,7 @@ class _LazyExactScore:
 
     def built(self):
         if self._score is None:
-            from .loss import ExactScore
+            from ..stage3.loss import ExactScore
 
             self._score = ExactScore(self.target)
         return self._score
@@ -490,14 +489,14 @@ class _Start:
 
 
 def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
-                    exact_score, field_kernels) -> _Start:
-    """Stages 1–2 of the published pipeline: :func:`~octcl.host.field.fit_field`, then
-    :func:`~octcl.host.decode.decode_field`."""
-    from .decode import decode_field
-    from .field import fit_field
+                    exact_score, field_backend) -> _Start:
+    """Stages 1–2 of the published pipeline: :func:`~octcl.host.stage1.display.fit_field`, then
+    :func:`~octcl.host.stage2.capped.decode_field`."""
+    from ..stage2.capped import decode_field
+    from ..stage1.display import fit_field
 
     fit = fit_field(scan, config, iterations=iterations, time_budget_s=budget_s, threads=threads, progress=step,
-                    kernels=field_kernels)
+                    backend=field_backend)
     tell("decode", 0, 1)
     start = time.monotonic()
     phantom = decode_field(fit.field, config, max_scatterers=TARGET_ROWS, seed=seed)
@@ -507,25 +506,26 @@ def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s
 
 
 def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
-                  exact_score, field_kernels) -> _Start:
-    """Stages 1–2 in the linear regime (:mod:`octcl.host.linear`); draws nothing at random.
+                  exact_score, field_backend) -> _Start:
+    """Stages 1–2 in the linear regime (:mod:`octcl.host.stage1.projections`); draws nothing at random.
 
-    The aim is :func:`~octcl.host.ceiling.aimed_levels` of the target. Stage 1
-    is :func:`~octcl.host.linear.linear_start` of ``field_schedule`` or, by
-    default, :func:`~octcl.host.field_solve.default_schedules` of
+    The aim is :func:`~octcl.host.stage1.ceiling.aimed_levels` of the target. Stage 1
+    is :func:`~octcl.host.stage1.start.linear_start` of ``field_schedule`` or, by
+    default, :func:`~octcl.host.stage1.solve.default_schedules` of
     ``iterations`` display steps (a display fit, projections and the hinge
     fit towards the aimed levels; a half-length candidate only where that
-    one falls short); stage 2 :func:`~octcl.host.linear.decode_exact`. The
+    one falls short); stage 2 :func:`~octcl.host.stage2.exact.decode_exact`. The
     aim goes on to stage 3, which does nothing where the start renders it.
     """
-    from .field_solve import default_schedules
-    from .linear import ENERGY_FLOOR_PCT, decode_exact, linear_start
+    from ..stage1.solve import default_schedules
+    from ..stage1.start import linear_start
+    from ..stage2.exact import ENERGY_FLOOR_PCT, decode_exact
 
     aim = aimed_levels(target_levels(scan, config))
     schedules = default_schedules(iterations) if field_schedule is None else (field_schedule,)
     found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, schedules=schedules,
                          time_budget_s=budget_s, threads=threads,
-                         progress=lambda taken, planned: step(taken, planned, None), aim=aim, kernels=field_kernels)
+                         progress=lambda taken, planned: step(taken, planned, None), aim=aim, backend=field_backend)
     tell("decode", 0, 1)
     start = time.monotonic()
     phantom = decode_exact(found.field, config)
@@ -552,8 +552,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     ----------
     target : str, Path or ndarray of uint8
         The target: an 8-bit (Nz × Nx) grey, RGB or RGBA PNG, read once
-        (:func:`octcl.host.target.read_target`), or an array in either form
-        of :mod:`octcl.host.target`: (Nz, Nx) levels of a grey B-scan as the
+        (:func:`octcl.host.pipeline.target.read_target`), or an array in either form
+        of :mod:`octcl.host.pipeline.target`: (Nz, Nx) levels of a grey B-scan as the
         scanner saves it, or (Nz, Nx, C) PNG pixels. ``read_target(path)``
         gives the array that inverts exactly as ``path`` does.
     output_path : str or Path
@@ -610,13 +610,13 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         or ``physical``. In the linear regime the seed changes nothing.
     field_schedule : str or FieldSchedule, optional
         The linear regime's stage 1 as named steps
-        (:class:`octcl.host.field_solve.FieldSchedule`, e.g.
+        (:class:`octcl.host.stage1.solve.FieldSchedule`, e.g.
         ``"display:150,project:100,hinge:200"``), one candidate, in place of
         the default candidates of ``field_iterations`` display steps.
     backend : str
         Where stage 1 runs (:data:`BACKENDS`): ``opencl`` (default), its
         steps as kernels on the device that renders (``OCTCL_DEVICE`` or
-        octcl's choice, :mod:`octcl._runtime`), or ``numpy``, the host
+        octcl's choice, :mod:`octcl.device.runtime`), or ``numpy``, the host
         reference. Stage 3 runs on the device either way.
     started : float, optional
         ``time.monotonic()`` at which the budget began; default: the call.
@@ -630,7 +630,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
     Raises
     ------
     ImageFormatError
-        The target is not a usable B-scan (:func:`octcl.host.target.check_target`).
+        The target is not a usable B-scan (:func:`octcl.host.pipeline.target.check_target`).
     OutputError
         ``output_path`` or ``report_path`` cannot be written (:func:`octcl._io.check_output_path`),
         checked before the work starts.
@@ -705,7 +705,7 @@ class _Plan:
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         if field_schedule is not None:
-            from .field_solve import FieldSchedule
+            from ..stage1.solve import FieldSchedule
 
             if regime != "linear":
                 raise ValueError("a stage-1 schedule of named steps is the linear regime's; the physical regime's "
@@ -743,7 +743,7 @@ class _Run:
         self.deadline = started + time_budget_s - final_reserve_s(time_budget_s)
         self.tell = _ProgressReporter(progress, started, self.deadline)
         self.field_budget = None if plan.fixed else field_budget_s(plan.regime, time_budget_s, self.elapsed())
-        self.ceiling = _Clock(None, self.deadline if plan.fixed else None)
+        self.ceiling = RefineClock(None, self.deadline if plan.fixed else None)
         self.writer, self.seconds, self.trace, self.offset = None, {}, [], 0.0
         self.exact_score = _LazyExactScore(target, config)
 
@@ -759,14 +759,12 @@ class _Run:
             self.tell("field", iteration, steps)
 
         self.tell("field", 0, 0)
-        field_kernels = None
-        if plan.backend == "opencl":
-            from .field_kernels import FieldKernels
+        from ..stage1.backend import make_backend
 
-            field_kernels = FieldKernels(self.config)
+        field_backend = make_backend(plan.backend, self.config, plan.threads)
         first = _STARTS[plan.regime](target_scan(self.target), self.config, plan.schedule, plan.field_iterations,
                                      plan.field_schedule, self.field_budget, plan.threads, self.seed, field_step,
-                                     self.tell, self.exact_score, field_kernels)
+                                     self.tell, self.exact_score, field_backend)
         self.seconds.update(first.seconds)
         self.trace.append({"time_s": self.elapsed(), "stage": "field", "iteration": first.field_iterations,
                            "loss": first.field_loss, "score": None})
@@ -778,8 +776,8 @@ class _Run:
         self.writer.write_now(phantom)
 
     def refine(self, first: _Start, target_score):
-        """Stage 3 (:func:`octcl.host.refine.refine`) from the first phantom, each improvement offered to the writer."""
-        from octcl._scanner_op import ScannerKernels
+        """Stage 3 (:func:`octcl.host.stage3.refine.refine`) from the first phantom, each improvement offered to the writer."""
+        from octcl.device.scanner import ScannerKernels
 
         self.tell("setup", 0, 1)
         start = time.monotonic()

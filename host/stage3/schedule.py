@@ -1,8 +1,8 @@
 """What stage 3 runs, as data: its phases, restarts, stopping rule and loss weights.
 
-:class:`RefineSchedule` is read by :func:`octcl.host.refine.refine`, which
+:class:`RefineSchedule` is read by :func:`octcl.host.stage3.refine.refine`, which
 runs it; the schedule itself imports no torch, so that choosing one
-(``octcl invert``'s options, :mod:`octcl.host.invert`'s defaults) costs
+(``octcl invert``'s options, :mod:`octcl.host.pipeline.invert`'s defaults) costs
 nothing until a run needs the loss.
 """
 
@@ -145,7 +145,7 @@ class RefineSchedule:
         In ``lpips`` phases, the LPIPS terms' gradient is computed on every
         ``lpips_every``-th step of a run (and its first, and the first after
         a phase without LPIPS) and reused on the steps between
-        (:class:`octcl.host.loss.DisplayLoss`, ``lpips="keep"``/``"reuse"``);
+        (:class:`octcl.host.stage3.loss.DisplayLoss`, ``lpips="keep"``/``"reuse"``);
         the other terms are computed on every step. 1: LPIPS on every step,
         the default: with 2 or 3, the score fell on every reusing step and
         ended lower on every scan of the development set, early and late in

@@ -22,7 +22,7 @@ finds the drivers:
 - macOS: Apple's OpenCL framework, which pyopencl links directly (its GPU
   has no ``double``; octcl's kernels are float32 unless asked otherwise).
 
-Every registration happens before the first platform query: ``_cl()``
+Every registration happens before the first platform query: ``pyopencl_module()``
 calls it.
 
 Device choice. The ``device`` argument, else the ``OCTCL_DEVICE``
@@ -44,9 +44,8 @@ compiler's own message and the fix.
 Builds print nothing: the compiler's log (vectoriser remarks, warnings)
 and whatever a compiler writes to standard error itself go to the
 ``octcl`` logger at debug level (``octcl --debug`` shows them); a failed
-build raises with its full log. Programs are built once
-per (context, source, options); PyOpenCL keeps the compiled binaries in its
-on-disk cache, so later runs skip the compiler.
+build raises with its full log (:func:`quiet_build`). octcl's own programs
+are built in one place, :mod:`octcl.device.programs`.
 """
 
 from __future__ import annotations
@@ -62,7 +61,7 @@ import sys
 import tempfile
 import warnings
 from dataclasses import dataclass
-from importlib import metadata, resources
+from importlib import metadata
 from pathlib import Path
 
 DEVICE_ENV = "OCTCL_DEVICE"
@@ -210,7 +209,8 @@ def _register_vendor_folder(bundled: dict[str, Path]) -> Path | None:
 
 
 @functools.lru_cache(maxsize=None)
-def _cl():
+def pyopencl_module():
+    """pyopencl, imported once octcl has registered its runtimes (:func:`register_runtimes`)."""
     register_runtimes()
     try:
         import pyopencl
@@ -221,7 +221,7 @@ def _cl():
 
 def list_devices() -> list[tuple[str, object]]:
     """All OpenCL devices as ("P:D", device) pairs."""
-    cl = _cl()
+    cl = pyopencl_module()
     try:
         platforms = cl.get_platforms()
     except cl.Error:
@@ -256,7 +256,7 @@ def implementation(device) -> str:
 
 def describe(device) -> str:
     """One line naming a device, its implementation and its memory."""
-    cl = _cl()
+    cl = pyopencl_module()
     kinds = [(name, getattr(cl.device_type, name.upper())) for name in ("gpu", "cpu", "accelerator")]
     kind = ("simulator" if implementation(device) in SIMULATORS
             else next((name for name, bit in kinds if device.type & bit), "other"))
@@ -275,7 +275,7 @@ def has_fp64(device) -> bool:
         return False
     try:
         return bool(device.double_fp_config)
-    except _cl().Error:
+    except pyopencl_module().Error:
         return False
 
 
@@ -308,10 +308,10 @@ def _probe_in_process(key: str, device) -> Probe:
         return Probe(**json.loads(path.read_text()))
     except (OSError, ValueError, TypeError):
         pass
-    cl = _cl()
+    cl = pyopencl_module()
     try:
         context, _ = context_for(device)
-        _quiet_build(context, PROBE_SOURCE, [], device, binary_cache=False)
+        quiet_build(context, PROBE_SOURCE, [], device, binary_cache=False)
         result = Probe(True)
     except cl.Error as exc:
         result = Probe(False, str(exc))
@@ -336,7 +336,7 @@ def probe(device) -> Probe:
 
 def _ranked(devices: list[tuple[str, object]], wanted=None) -> list[tuple[str, object, str]]:
     """The devices octcl would use, best first, with the reason for each: (key, device, reason)."""
-    cl = _cl()
+    cl = pyopencl_module()
     usable = [(key, d) for key, d in devices if implementation(d) not in SIMULATORS]
     gpus = [(key, d, "the first GPU that builds octcl's probe kernel")
             for key, d in usable if d.type & cl.device_type.GPU]
@@ -390,45 +390,12 @@ def select_device(choice: str | None = None):
 @functools.lru_cache(maxsize=None)
 def context_for(device):
     """A context and in-order queue on ``device`` (one per device per process)."""
-    cl = _cl()
+    cl = pyopencl_module()
     context = cl.Context([device])
     return context, cl.CommandQueue(context)
 
 
-def kernel_source(name: str) -> str:
-    """The text of ``kernels/<name>.cl``."""
-    return resources.files("octcl.kernels").joinpath(f"{name}.cl").read_text(encoding="utf-8")
-
-
-def build_options(defines: tuple[tuple[str, object], ...], double: bool) -> list[str]:
-    """The OpenCL compiler options of a build: ``-DKEY=VALUE`` per define, ``-DOCTCL_DOUBLE=1`` for float64.
-
-    Shared by :func:`build` and ``scripts/kernel_resources.py``, so that the
-    kernels compiled offline for GPU targets are the ones octcl runs.
-    """
-    options = [f"-D{key}={value}" for key, value in defines]
-    if double:
-        options.append("-DOCTCL_DOUBLE=1")
-    return options
-
-
-@functools.lru_cache(maxsize=None)
-def build(context, name: str, defines: tuple[tuple[str, object], ...], double: bool):
-    """Build ``kernels/<name>.cl`` with ``-D`` defines; checks fp64 when asked for."""
-    cl = _cl()
-    device = context.devices[0]
-    if double and not has_fp64(device):
-        raise OpenCLUnavailableError(
-            f"{describe(device)} has no double precision (cl_khr_fp64); "
-            "use float32 (the default) or another device")
-    try:
-        return _quiet_build(context, kernel_source(name), build_options(defines, double), device)
-    except cl.RuntimeError as exc:
-        raise OpenCLUnavailableError(
-            f"kernels/{name}.cl failed to build on {describe(device)}:\n{exc}") from None
-
-
-def _quiet_build(context, source: str, options: list[str], device, *, binary_cache: bool = True):
+def quiet_build(context, source: str, options: list[str], device, *, binary_cache: bool = True):
     """Build ``source`` for ``device``; its compiler log goes to the debug log instead of a CompilerWarning on stderr.
 
     A failed build raises pyopencl's error, which holds the whole log.
@@ -438,7 +405,7 @@ def _quiet_build(context, source: str, options: list[str], device, *, binary_cac
     NVIDIA-only attribute (``CL_DEVICE_COMPUTE_CAPABILITY_MAJOR_NV``), which
     Oclgrind's API check reports as an error.
     """
-    cl = _cl()
+    cl = pyopencl_module()
     with warnings.catch_warnings(), _compiler_output_to_log():
         warnings.simplefilter("ignore", cl.CompilerWarning)
         if binary_cache:

@@ -3,13 +3,13 @@
 :class:`DisplayFitKernels` holds one display fit's state on the device (the
 polar parameters ρ = ln|F| and θ = arg F, Adam's moments, the field, the
 target's display) and enqueues one step: A = H·F
-(:class:`octcl.host.field_kernels.FieldKernels`), the loss and G_A
+(:class:`octcl.host.stage1.operator_device.FieldKernels`), the loss and G_A
 (``kernels/display_loss.cl``), Hᴴ·G_A, then Adam's update of ρ and θ and
 the new F (``kernels/adam.cl``). Nothing is read back during a step: each
 step writes its loss into a device array that :meth:`DisplayFitKernels.losses`
-reads when the caller asks (:func:`octcl.host.field.fit_field` does every
+reads when the caller asks (:func:`octcl.host.stage1.display.fit_field` does every
 :data:`LOSS_READ_EVERY` steps, for its progress). The NumPy twins are
-:func:`octcl.host.field.display_loss` and :class:`octcl.host.adam.Adam`;
+:func:`octcl.host.stage1.display_loss.display_loss` and :class:`octcl.host.optim.adam.Adam`;
 ``tests/test_display_kernels.py`` compares them on every OpenCL
 implementation present.
 """
@@ -18,11 +18,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._runtime import build
-from ..render import DISPLAY_SLOPE
-from .adam import Adam
-from .field import DISPLAY_GRADIENT_FLOOR, HIGH_PASS_WEIGHT, DisplayGoal
-from .field_kernels import REDUCTION_WORK_GROUP, FieldKernels, reduction_work_group
+from ...device.programs import build
+from ...render import DISPLAY_SLOPE
+from ..optim.adam import Adam
+from .display_loss import DISPLAY_GRADIENT_FLOOR, HIGH_PASS_WEIGHT, DisplayGoal
+from ...device.programs import REDUCTION_WORK_GROUP, reduction_work_group
+from .operator_device import FieldKernels
 
 #: Work-groups of a pass over the pixels on a CPU device: each work-item then sums 32 pixels of a 256×512 scan
 #: in a loop (a CPU runs a work-group's barriers as loops over its work-items, so fewer, longer work-items pay

@@ -12,22 +12,21 @@ step (:data:`STEPS`) is a function apart from the loop that runs them.
 Steps, each from the field the previous one left (the first from the
 regularised inverse of the de-logged target with zero phase):
 
-- ``display``: :func:`octcl.host.field.fit_field`, Adam on the display
+- ``display``: :func:`octcl.host.stage1.display.fit_field`, Adam on the display
   loss: puts the dark pixels near their levels and keeps the field's norm
   near its rendering's.
-- ``project``: :func:`octcl.host.linear.retrieve_field`, accelerated
+- ``project``: :func:`octcl.host.stage1.projections.retrieve_field`, accelerated
   projections onto the aimed levels' intervals: most pixels onto their level.
-- ``hinge``: :func:`octcl.host.linear.fit_levels`, L-BFGS on the squared
+- ``hinge``: :func:`octcl.host.stage1.hinge.fit_levels`, L-BFGS on the squared
   distance to the intervals, the brightest pixel pinned: the last pixels.
-- ``aim``: :class:`octcl.host.aim.AimSearch`, rounds that move unwritable
+- ``aim``: :class:`octcl.host.stage1.aim.AimSearch`, rounds that move unwritable
   pixels of the aim to their other side where the exact score gains and a
   short hinge fit can follow; from a field at its aim, which it keeps there.
 
-Each step has two backends with one schedule: NumPy on the host (the
-reference, ``--backend numpy``) and OpenCL kernels on a device
-(:attr:`FieldSolve.kernels`: :func:`~octcl.host.field.fit_field` with its
-``kernels``, :mod:`octcl.host.linear_device`); the field passes between
-steps on the host, once per step.
+Each step is written once and runs its loop on the solve's backend
+(:attr:`FieldSolve.backend`, :mod:`octcl.host.stage1.backend`): NumPy on the
+host (the reference, ``--backend numpy``) or OpenCL kernels on a device;
+the field passes between steps on the host, once per step.
 
 Rules the loop keeps: the result is the best field any step left
 (:attr:`FieldSolve.best_field`; a step that leaves fewer pixels at their
@@ -47,9 +46,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import DEFAULT_CONFIG, ScannerConfig
-from ..render import Rendering
-from .field import FieldOperator
+from ...render import Rendering
+from .aim import AimSearch
+from .backend import Backend
+from .display import fit_field
+from .hinge import LEVEL_FIT_ITERATIONS, fit_levels
+from .projections import regularised_start, retrieve_field
 
 #: Under a time budget, the projections' share of what the display fit before them leaves (the hinge fit
 #: gets the rest). With ``--time-budget 3`` (Uniform B, skin_0, orange in one process) 1/3, 1/2 and 0.7
@@ -66,6 +68,13 @@ DEFAULT_AIM_ROUNDS = 4
 #: Hinge iterations at most for the field to follow a move of the aim step (a few pixels, two levels each;
 #: it stops once every pixel is at its new level).
 AIM_HINGE_ITERATIONS = 100
+
+#: Display-fit lengths of :func:`~octcl.host.stage1.start.linear_start`'s candidates, as multiples of its
+#: first display fit's steps. A third at 2× won on one scan of seven by 8e−6 and cost
+#: about 5 s (:func:`~octcl.host.stage1.start.linear_start`).
+START_LENGTHS = (1.0, 0.5)
+#: Projection steps after each display fit in :func:`~octcl.host.stage1.start.linear_start`.
+START_PROJECTIONS = 100
 
 
 @dataclass(frozen=True)
@@ -178,18 +187,14 @@ class FieldSolve:
     levels : ndarray of uint8, (Nz, Nx)
         The target's levels.
     aim : ndarray of uint8, (Nz, Nx)
-        The levels to render (:func:`octcl.host.ceiling.aimed_levels`).
-    config : ScannerConfig
-    threads : int, optional
-        FFT threads; the first display fit times 1 and all cores where None
-        and the rest keep its choice.
+        The levels to render (:func:`octcl.host.stage1.ceiling.aimed_levels`).
+    backend : NumpyBackend or OpenCLBackend
+        Where the field steps run (:mod:`octcl.host.stage1.backend`): its
+        ``config`` is the scanner's; a NumPy backend's FFT threads are timed
+        by the first display fit unless it was given them.
     score : callable, optional
         ``score(levels) -> float``, the exact score against the target: the
-        ``aim`` step's judge (:class:`octcl.host.aim.AimSearch`).
-    kernels : FieldKernels, optional
-        Run the field steps as OpenCL kernels on its device
-        (:mod:`octcl.host.field_kernels`, :mod:`octcl.host.display_kernels`);
-        None: in NumPy, the reference (``--backend numpy``).
+        ``aim`` step's judge (:class:`octcl.host.stage1.aim.AimSearch`).
 
     Attributes
     ----------
@@ -202,10 +207,8 @@ class FieldSolve:
 
     levels: np.ndarray
     aim: np.ndarray
-    config: ScannerConfig = DEFAULT_CONFIG
-    threads: int | None = None
+    backend: Backend
     score: object = None
-    kernels: object = None
     field: np.ndarray | None = None
     identical: float = 0.0
     best_field: np.ndarray | None = None
@@ -213,28 +216,24 @@ class FieldSolve:
     history: list = dataclasses.field(default_factory=list)
     aim_search: object = None
 
+    @property
+    def config(self):
+        """The scanner's configuration (the backend's)."""
+        return self.backend.config
+
     def start_field(self) -> np.ndarray:
         """The field before any step: the regularised inverse of the de-logged target, zero phase."""
-        from .linear import regularised_start
-
-        return regularised_start(self.levels, FieldOperator(self.config, self.threads or 1))
+        return regularised_start(self.levels, self.backend.operator)
 
     def fit_levels(self, field: np.ndarray, aim: np.ndarray, iterations: int, budget_s: float | None = None):
-        """The hinge fit of ``field`` onto ``aim`` on this solve's backend: :func:`octcl.host.linear.fit_levels`
-        or, on a device, :func:`octcl.host.linear_device.fit_levels_device`."""
-        if self.kernels is not None:
-            from .linear_device import fit_levels_device
-
-            return fit_levels_device(self.kernels, field, aim, iterations=iterations, time_budget_s=budget_s)
-        from .linear import fit_levels
-
+        """The hinge fit of ``field`` onto ``aim`` (:func:`octcl.host.stage1.hinge.fit_levels`) on this solve's
+        backend."""
         return fit_levels(field, aim, self.config, iterations=iterations, time_budget_s=budget_s,
-                          workers=self.threads or 1)
+                          backend=self.backend)
 
     def share_at_aim(self, field_now: np.ndarray) -> float:
         """Share of pixels the field renders at their aimed level."""
-        return float(np.mean(Rendering.from_a_scans(FieldOperator(self.config).apply(field_now)).levels
-                             == self.aim))
+        return float(np.mean(Rendering.from_a_scans(self.backend.operator.apply(field_now)).levels == self.aim))
 
     def run(self, schedule: FieldSchedule, time_budget_s: float | None = None, progress=None) -> "FieldSolve":
         """Run ``schedule``'s steps in order (module docstring); returns ``self``.
@@ -275,26 +274,15 @@ class FieldSolve:
 
 
 def _display_step(solve: FieldSolve, iterations: int, budget_s, progress):
-    from .field import fit_field
-
     fit = fit_field(solve.levels, solve.config, iterations=iterations, time_budget_s=budget_s,
-                    threads=solve.threads, initial=solve.field, kernels=solve.kernels,
+                    initial=solve.field, backend=solve.backend,
                     progress=lambda taken, planned, loss: progress(taken, planned))
-    solve.threads = fit.threads
     return fit.field, fit.iterations, min(fit.clock_steps, 1)
 
 
 def _project_step(solve: FieldSolve, iterations: int, budget_s, progress):
-    if solve.kernels is not None:
-        from .linear_device import retrieve_field_device
-
-        fit = retrieve_field_device(solve.kernels, solve.levels, iterations=iterations, time_budget_s=budget_s,
-                                    initial=solve.field, aim=solve.aim, progress=progress)
-        return fit.field, fit.iterations, fit.clock_steps
-    from .linear import retrieve_field
-
     fit = retrieve_field(solve.levels, solve.config, iterations=iterations, time_budget_s=budget_s,
-                         initial=solve.field, aim=solve.aim, workers=solve.threads or 1, progress=progress)
+                         initial=solve.field, aim=solve.aim, progress=progress, backend=solve.backend)
     return fit.field, fit.iterations, fit.clock_steps
 
 
@@ -306,15 +294,13 @@ def _hinge_step(solve: FieldSolve, iterations: int, budget_s, progress):
 
 
 def _aim_step(solve: FieldSolve, rounds: int, budget_s, progress):
-    """Up to ``rounds`` rounds of :class:`octcl.host.aim.AimSearch` on ``solve.aim``; the field stays.
+    """Up to ``rounds`` rounds of :class:`octcl.host.stage1.aim.AimSearch` on ``solve.aim``; the field stays.
 
     Nothing to do (and no torch) for a target without unwritable levels.
     Under a budget a round starts only while the rounds so far, at their
     measured pace (the first with the loss's construction, an estimate of
     :data:`AIM_FIRST_ROUND_S` before it), end within it.
     """
-    from .aim import AimSearch
-
     if solve.score is None:
         raise ValueError("the aim step needs the exact score (FieldSolve's score)")
     if solve.aim_search is None:
@@ -350,12 +336,10 @@ STEPS = {"display": _display_step, "project": _project_step, "hinge": _hinge_ste
 
 
 def default_schedules(display_iterations: int) -> tuple:
-    """The linear regime's stage-1 candidates, tried in order (:func:`octcl.host.linear.linear_start`):
-    ``display(N) + project(100) + hinge(200) + aim(DEFAULT_AIM_ROUNDS)``, then the same with N/2 display
-    steps (:data:`octcl.host.linear.START_LENGTHS`). The aim step does nothing on a target without
-    unwritable levels."""
-    from .linear import LEVEL_FIT_ITERATIONS, START_LENGTHS, START_PROJECTIONS
-
+    """The linear regime's stage-1 candidates, tried in order (:func:`octcl.host.stage1.start.linear_start`):
+    ``display(N) + project(START_PROJECTIONS) + hinge(200) + aim(DEFAULT_AIM_ROUNDS)``, then the same with
+    N/2 display steps (:data:`START_LENGTHS`). The aim step does nothing on a target without unwritable
+    levels."""
     return tuple(display(max(1, round(length * display_iterations))) + project(START_PROJECTIONS)
                  + hinge(LEVEL_FIT_ITERATIONS) + aim(DEFAULT_AIM_ROUNDS)
                  for length in START_LENGTHS)

@@ -1,0 +1,84 @@
+"""octcl's OpenCL programs: one place that assembles, configures and builds every kernel file.
+
+A program is ``kernels/prelude.cl`` followed by ``kernels/<name>.cl``
+(:func:`kernel_source`): the prelude defines what every file shares (the
+``real``/``complex_t`` types of a float32 or float64 build, ``cmul``, the
+fixed-order work-group sum), so no kernel file repeats it. The prelude is
+prepended rather than included: an ``#include`` needs an include path that
+every compiler, pyopencl's binary cache (keyed by the source text) and the
+offline GPU compilers of ``scripts/kernel_resources.py`` resolve alike,
+where a prepended text is the same source everywhere. A ``#line 1``
+directive after the prelude keeps a compiler's line numbers those of the
+kernel file.
+
+Constants that host and kernels must agree on are passed as ``-D``
+defines from the host's own values (:func:`build_options`): a kernel file
+names them and defines none of them itself. Each op's ``program_defines``
+gives its file's defines; :data:`REDUCTION_WORK_GROUP` and
+:func:`reduction_work_group` are the reductions' work-group size every
+op shares.
+
+Programs are built once per (context, name, defines, precision)
+(:func:`build`, memoised); pyopencl keeps the compiled binaries in its
+on-disk cache, so later runs skip the compiler.
+"""
+
+from __future__ import annotations
+
+import functools
+from importlib import resources
+
+from .runtime import OpenCLUnavailableError, describe, has_fp64, pyopencl_module, quiet_build
+
+#: The file every program starts with (module docstring).
+PRELUDE = "prelude"
+#: Work-items of the reductions' work-groups (a power of two; fewer where the device allows fewer).
+REDUCTION_WORK_GROUP = 64
+
+
+def reduction_work_group(device) -> int:
+    """The reductions' work-group size on ``device``: :data:`REDUCTION_WORK_GROUP`, or the largest power of
+    two the device allows below it."""
+    return 1 << (min(REDUCTION_WORK_GROUP, device.max_work_group_size).bit_length() - 1)
+
+
+def kernel_file(name: str) -> str:
+    """The text of ``kernels/<name>.cl`` alone."""
+    return resources.files("octcl.kernels").joinpath(f"{name}.cl").read_text(encoding="utf-8")
+
+
+def kernel_source(name: str) -> str:
+    """The source octcl builds for ``kernels/<name>.cl``: the prelude, then the file from its line 1."""
+    return f"{kernel_file(PRELUDE)}\n#line 1\n{kernel_file(name)}"
+
+
+def build_options(defines: tuple[tuple[str, object], ...], double: bool) -> list[str]:
+    """The OpenCL compiler options of a build: ``-DKEY=VALUE`` per define, ``-DOCTCL_DOUBLE=1`` for float64.
+
+    Shared by :func:`build` and ``scripts/kernel_resources.py``, so that the
+    kernels compiled offline for GPU targets are the ones octcl runs.
+    """
+    options = [f"-D{key}={value}" for key, value in defines]
+    if double:
+        options.append("-DOCTCL_DOUBLE=1")
+    return options
+
+
+@functools.lru_cache(maxsize=None)
+def build(context, name: str, defines: tuple[tuple[str, object], ...], double: bool):
+    """Build ``kernels/<name>.cl`` (after the prelude) with ``-D`` defines; checks fp64 when asked for."""
+    cl = pyopencl_module()
+    device = context.devices[0]
+    if double and not has_fp64(device):
+        raise OpenCLUnavailableError(
+            f"{describe(device)} has no double precision (cl_khr_fp64); "
+            "use float32 (the default) or another device")
+    try:
+        return quiet_build(context, kernel_source(name), build_options(defines, double), device)
+    except cl.RuntimeError as exc:
+        raise OpenCLUnavailableError(
+            f"kernels/{name}.cl failed to build on {describe(device)}:\n{exc}") from None
+
+
+__all__ = ["PRELUDE", "REDUCTION_WORK_GROUP", "build", "build_options", "kernel_file", "kernel_source",
+           "reduction_work_group"]
