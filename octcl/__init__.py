@@ -15,7 +15,8 @@ from .config import ScannerConfig
 from .phantom import Phantom
 from .render import render
 
-__version__ = "0.4.0"
+#: octcl's version, the one place it is written (setup.cfg reads it: ``version = attr: octcl.__version__``).
+__version__ = "0.8.0"
 __all__ = ["Phantom", "ScannerConfig", "render", "score", "invert", "__version__"]
 
 

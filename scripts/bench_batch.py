@@ -67,7 +67,7 @@ DASK = str(Path(sys.executable).with_name("dask"))
 
 def make_targets(folder: Path, count: int, plain: bool = False) -> None:
     """``skin_N.npy``, the scanner's levels of ``Phantom.skin(N)``; ``plain``: its display quantised plainly,
-    floor(256·D), with the unwritable levels a real scan has (``host/ceiling.py``)."""
+    floor(256·D), with the unwritable levels a real scan has (``host/stage1/ceiling.py``)."""
     folder.mkdir(parents=True, exist_ok=True)
     for seed in range(count):
         path = folder / f"{'plain_' if plain else ''}skin_{seed}.npy"

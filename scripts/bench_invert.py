@@ -40,7 +40,7 @@ Writes, in ``--out``:
   time ratio to the first, its global score and median seconds; the
   seconds each run took to reach 0.9947, 0.998, 0.999, 0.9995, 0.9998, its final score
   − 1e−4 and the scores of the target's nearest-writable and error-diffused images (the
-  ceiling, host/ceiling.py, beside the shares of pixels exact, writable and avoidably off); and stage 3's time per iteration, part by part, in wall and CPU
+  ceiling, host/stage1/ceiling.py, beside the shares of pixels exact, writable and avoidably off); and stage 3's time per iteration, part by part, in wall and CPU
   seconds (``--summarise`` writes it again from the files).
 
 ``--schedules fixed-length default`` runs, on each scan and seed, the
@@ -89,7 +89,7 @@ def development_set(out: Path, skin: int, plain: int = 0) -> dict[str, Path]:
 
     ``plain_skin_N`` (``plain`` of them) are renderings of ``Phantom.skin(N)`` quantised plainly,
     floor(256·D) with no colour map: targets with unwritable levels, as real scans have, whose phantom is
-    known (host/ceiling.py).
+    known (host/stage1/ceiling.py).
     """
     targets = {name: OFFICIAL_DIR / f"{name}.png" for name in OFFICIAL}
     if ORANGE.is_file():
@@ -114,10 +114,10 @@ def development_set(out: Path, skin: int, plain: int = 0) -> dict[str, Path]:
 #: ``physical`` the published pipeline (``--regime physical``);
 #: ``budget-10`` (``-5``, ``-3``) the default with a 10 s (5 s, 3 s) time budget; ``field-300`` and
 #: ``field-75`` the linear regime's first display fit of 300 or 75 steps (150 by default); ``no-aim`` the default's
-#: first stage-1 candidate without its aim step (host/field_solve.py); ``fixed-length`` the
+#: first stage-1 candidate without its aim step (host/stage1/solve.py); ``fixed-length`` the
 #: default's phases and restarts, each run to its whole length (the schedule
 #: before adaptive stopping); ``stall-rule`` adds the main run's stall rule
-#: with a patience of 2 checkpoints (host/refine.py); ``no-fall-guard`` never
+#: with a patience of 2 checkpoints (host/stage3/refine.py); ``no-fall-guard`` never
 #: goes back to the best phantom when the main run falls (``max_falls`` 0); ``numpy`` the default with stage 1
 #: on the host (``--backend numpy``), the reference the device path is measured against.
 #: Variants of the loss are compared by ``bench_refine.py``.

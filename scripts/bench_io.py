@@ -245,7 +245,7 @@ def render_in_process(repeats: int, old_render) -> None:
     parts = {}
     for (filename, _, function), (_, _, _, cumulative, _) in stats.items():
         module = Path(filename).stem
-        if module in ("render", "_scanner_op", "_depth_order", "__init__") and function in (
+        if module in ("render", "scanner", "depth_order", "__init__") and function in (
                 "render", "set_phantom", "_depth_order", "_contribution_ranges", "forward", "from_a_scans",
                 "enqueue_copy"):
             key = f"{module}.{function}" if module != "__init__" else f"pyopencl.{function}"

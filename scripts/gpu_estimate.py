@@ -108,7 +108,7 @@ def field_solve_work(nz: int = 256, nx: int = 512, padded: int = 1024, pairs: in
                "flops": apply["flops"] + 2 * depth_fft + 2 * lateral_fft + 40 * nz * nx,
                "launches": apply["launches"] + 5}
     evaluation = {"bytes": 2 * apply["bytes"] + 3 * field, "flops": 2 * apply["flops"], "launches": 7}
-    # The compact L-BFGS (host/lbfgs_device.py): pair_dots reads the trial's and the last point and gradient and
+    # The compact L-BFGS (host/optim/lbfgs_device.py): pair_dots reads the trial's and the last point and gradient and
     # the 2m stored vectors and writes the new pair; direction reads the gradient, the point and the 2m vectors
     # and writes the direction and the trial point; a finish_sums and one write of the 2m + 1 coefficients.
     compact = {"bytes": (2 * pairs + 6 + 2 * pairs + 4) * field, "flops": 2 * 4 * 2 * pairs * nz * nx,

@@ -1,4 +1,4 @@
-"""Adam on NumPy arrays (host/adam.py), as stage 1's display fit and stage 3 use it."""
+"""Adam on NumPy arrays (host/optim/adam.py), as stage 1's display fit and stage 3 use it."""
 
 import numpy as np
 

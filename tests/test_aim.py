@@ -1,4 +1,4 @@
-"""Levels chosen for the score (host/aim.py): moves of unwritable pixels, kept where the score gains."""
+"""Levels chosen for the score (host/stage1/aim.py): moves of unwritable pixels, kept where the score gains."""
 
 import itertools
 

@@ -1,4 +1,4 @@
-"""Stage 1 as data: steps, schedules, and the solve that runs them (host/field_solve.py)."""
+"""Stage 1 as data: steps, schedules, and the solve that runs them (host/stage1/solve.py)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""L-BFGS on one array (host/lbfgs.py)."""
+"""L-BFGS on one array (host/optim/lbfgs.py)."""
 
 import numpy as np
 

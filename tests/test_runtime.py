@@ -56,20 +56,20 @@ def forget_probes():
 def break_builds_of(monkeypatch, broken: set[str]):
     """Builds on devices of the implementations in ``broken`` fail in their compiler: the probe
     program's ``octcl_probe_data`` is defined as ``)``, a syntax error there."""
-    real_build = _runtime._quiet_build
+    real_build = _runtime.quiet_build
 
     def build_breaking(context, source, options, device, **kwargs):
         if implementation(device) in broken:
             options = [*options, "-Doctcl_probe_data=)"]
         return real_build(context, source, options, device, **kwargs)
 
-    monkeypatch.setattr(_runtime, "_quiet_build", build_breaking)
+    monkeypatch.setattr(_runtime, "quiet_build", build_breaking)
     forget_probes()
 
 
 def pocl_as_on_zen5(monkeypatch):
     """Every PoCL build fails as PyPI's PoCL 3.0 fails on an AMD Zen 5 CPU (:data:`POCL_ZEN5_LOG`)."""
-    real_build = _runtime._quiet_build
+    real_build = _runtime.quiet_build
     cl = _runtime.pyopencl_module()
 
     def build_as_on_zen5(context, source, options, device, **kwargs):
@@ -79,7 +79,7 @@ def pocl_as_on_zen5(monkeypatch):
             raise cl.RuntimeError(cl._cl._ErrorRecord("clBuildProgram", cl.status_code.BUILD_PROGRAM_FAILURE, log))
         return real_build(context, source, options, device, **kwargs)
 
-    monkeypatch.setattr(_runtime, "_quiet_build", build_as_on_zen5)
+    monkeypatch.setattr(_runtime, "quiet_build", build_as_on_zen5)
     forget_probes()
 
 
@@ -181,7 +181,7 @@ def test_probe_results_are_remembered_per_device(fresh_probes, monkeypatch):
     def no_compiler(*_, **__):
         raise AssertionError("the compiler was asked again")
 
-    monkeypatch.setattr(_runtime, "_quiet_build", no_compiler)
+    monkeypatch.setattr(_runtime, "quiet_build", no_compiler)
     assert probe(device).builds
     # Another driver version is another key, so an updated driver is probed anew.
     assert _runtime._probe_key(device) != _runtime._probe_key(_Renamed(device, driver_version="0.0"))
@@ -215,7 +215,7 @@ def test_successful_builds_print_nothing_and_log_under_debug(caplog):
               "__kernel void k(__global int *x) { x[0] = 1; }")
     with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.DEBUG, logger="octcl"):
         warnings.simplefilter("always")
-        _runtime._quiet_build(context, source, [], device)
+        _runtime.quiet_build(context, source, [], device)
     assert not [w for w in caught if issubclass(w.category, cl.CompilerWarning)]
     assert "octcl test remark" in caplog.text
 

@@ -117,7 +117,7 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
 #: torch's thread count in a fixed-schedule run unless given. The thread
 #: count changes no bit of the result (docs/reproducibility.md), only the
 #: speed; one thread is never slowed by other processes holding the cores
-#: (see host/refine.py, _ThreadChooser).
+#: (see host/stage3/refine.py, _ThreadChooser).
 FIXED_THREADS = 1
 #: Seconds kept back from stage 3 for the last checkpoint write and the
 #: report, at most: a write may be under way when stage 3 ends and the best
