@@ -410,7 +410,7 @@ class _LazyExactScore:
     equal to a grey target's own score 1 on every component without it:
     the metric then compares identical images (MS-SSIM's terms are x/x
     with the same rounding on both sides, LPIPS' feature differences are
-    0; ``tests/test_invert.py`` checks :class:`ExactScore` gives exactly
+    0; ``tests/pipeline/test_invert.py`` checks :class:`ExactScore` gives exactly
     that), so a scan the scanner rendered, inverted exactly, needs no torch.
     """
 

@@ -39,15 +39,15 @@ ENERGY_WEIGHT = 0.1
 DISPLAY_GRADIENT_FLOOR = -1.0
 
 
-def _box3(image: np.ndarray) -> np.ndarray:
+def box3(image: np.ndarray) -> np.ndarray:
     """The 3×3 mean of an image, its edges replicated."""
     padded = np.pad(image, 1, mode="edge")
     rows = padded[:-2] + padded[1:-1] + padded[2:]
     return (rows[:, :-2] + rows[:, 1:-1] + rows[:, 2:]) / 9.0
 
 
-def _box3_adjoint(image: np.ndarray) -> np.ndarray:
-    """The adjoint of :func:`_box3`: each value spread over its 3×3 window of the padded image, the
+def box3_adjoint(image: np.ndarray) -> np.ndarray:
+    """The adjoint of :func:`box3`: each value spread over its 3×3 window of the padded image, the
     padding then folded back onto the edge it replicates."""
     nz, nx = image.shape
     spread = np.zeros((nz + 2, nx + 2), dtype=image.dtype)
@@ -61,9 +61,9 @@ def _box3_adjoint(image: np.ndarray) -> np.ndarray:
     return spread[1:-1, 1:-1] / 9.0
 
 
-def _high_pass(image: np.ndarray) -> np.ndarray:
+def high_pass(image: np.ndarray) -> np.ndarray:
     """hp(X) = X − box3(X): the image minus its 3×3 mean (edges replicated)."""
-    return image - _box3(image)
+    return image - box3(image)
 
 
 @dataclass
@@ -90,7 +90,7 @@ class DisplayGoal:
     @classmethod
     def of(cls, levels: np.ndarray, energy_weight: float = ENERGY_WEIGHT, dtype=np.float32) -> "DisplayGoal":
         display = target_display(levels).astype(dtype)
-        return cls(display, _high_pass(display), display > 0, energy_weight)
+        return cls(display, high_pass(display), display > 0, energy_weight)
 
 
 def display_loss(field: np.ndarray, operator: FieldOperator, goal: DisplayGoal) -> tuple[float, np.ndarray]:
@@ -114,7 +114,7 @@ def display_loss(field: np.ndarray, operator: FieldOperator, goal: DisplayGoal) 
 
     G = ∂L/∂Re + i·∂L/∂Im, so that dL = Re Σ conj(G)·dF (Wirtinger; for
     dℓ = Re(conj(A)·dA)/(P + c) and dP = 2·Re(conj(A)·dA)).
-    ``tests/test_field.py`` checks it against finite differences and
+    ``tests/stage1/test_display_loss.py`` checks it against finite differences and
     against torch's autograd of the same loss.
 
     Returns
@@ -133,7 +133,7 @@ def display_loss(field: np.ndarray, operator: FieldOperator, goal: DisplayGoal) 
     floor = np.where(goal.visible, DISPLAY_GRADIENT_FLOOR, 0.0).astype(display.dtype)
     clamped = np.maximum(display, floor)
     error = clamped - goal.display
-    residual = _high_pass(clamped) - goal.high_pass
+    residual = high_pass(clamped) - goal.high_pass
     count = error.size
     energy = float((field.real**2 + field.imag**2).sum(dtype=np.float64)) / count
     loss = (float(np.abs(error).sum(dtype=np.float64) + (error**2).sum(dtype=np.float64)) / count
@@ -141,7 +141,7 @@ def display_loss(field: np.ndarray, operator: FieldOperator, goal: DisplayGoal) 
             + goal.energy_weight * energy / float(peak))
 
     residual_sign = np.sign(residual)
-    d_clamped = (np.sign(error) + 2.0 * error + HIGH_PASS_WEIGHT * (residual_sign - _box3_adjoint(residual_sign))) \
+    d_clamped = (np.sign(error) + 2.0 * error + HIGH_PASS_WEIGHT * (residual_sign - box3_adjoint(residual_sign))) \
         / count
     d_display = np.where(display >= floor, d_clamped, 0.0)
     d_log = DISPLAY_SLOPE * d_display

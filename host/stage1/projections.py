@@ -23,7 +23,7 @@ the cropped operator itself, and the problem is not convex: with momentum
 0.9 a full step (α = 1) diverged on the four synthetic scans of the
 development set tried (Uniform A's field grew to ~1e93; the real scan
 converged), while α = :data:`STEP` = 0.8 converged on all seven
-(``tests/test_linear.py`` keeps Uniform A bounded). The intervals are shrunk by :data:`INTERVAL_MARGIN` (a
+(``tests/stage1/test_projections.py`` keeps Uniform A bounded). The intervals are shrunk by :data:`INTERVAL_MARGIN` (a
 tenth of their width in dB, at each end) so that the iterate lands inside
 a level rather than on its edge. The start is the regularised inverse of
 the de-logged target with zero phase, as in stage 1 of the physical regime,

@@ -36,7 +36,7 @@ moves by 1e−9 of itself, 4e−8 dB, about 1e−7 of a display level; float64
 rounding in the scanner's own sums is of the same order. The energies are
 then about 1e−11 % for the brightest rows (measured on the development set), within the task's 0 ≤ E ≤ 100, and
 the phantom file's 8 significant digits keep their relative precision at any
-scale. ``tests/test_linear.py`` renders decoded phantoms with the float64
+scale. ``tests/stage2/test_exact.py`` renders decoded phantoms with the float64
 reference scanner, shadowing included, and compares the levels with those
 of the field.
 """
@@ -89,7 +89,7 @@ def row_offsets_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
     return row_depths_um(config) - cell_depths_um(config)[None, :]
 
 
-def _carriers(config: ScannerConfig) -> np.ndarray:
+def row_carriers(config: ScannerConfig) -> np.ndarray:
     """e^{−2i·k0·o_{d,n}}, the carrier phase of each row's offset: (4, Nz, 1), broadcasting over columns.
 
     Near (3π/4, π/4, −π/4, −3π/4) for the offsets (−3, −1, 1, 3)·λ/16; the
@@ -102,7 +102,7 @@ def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
     """Non-negative weights p_d, two per value, with Σ_d p_d·carriers[d] = value.
 
     ``carriers`` are unit phasors about 90° apart: (D,), the same for every
-    value, or (D, ...) broadcasting against ``values`` (:func:`_carriers`:
+    value, or (D, ...) broadcasting against ``values`` (:func:`row_carriers`:
     per row), in the same order around the circle for every value. A value
     goes to the two whose angles enclose it. Returns (D,) + values.shape.
     """
@@ -166,7 +166,7 @@ def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) 
 def _cell_weights(field: np.ndarray, config: ScannerConfig) -> np.ndarray:
     """:func:`split_on_carriers` of each cell value with its cell's own carrier e^{−2i·k0·z_n} taken out."""
     k0 = 2 * np.pi / config.wavelength_um
-    return split_on_carriers(field * np.exp(2j * k0 * cell_depths_um(config))[:, None], _carriers(config))
+    return split_on_carriers(field * np.exp(2j * k0 * cell_depths_um(config))[:, None], row_carriers(config))
 
 
 def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,

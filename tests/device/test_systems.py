@@ -28,7 +28,7 @@ from packaging.requirements import Requirement
 
 from octcl.device import runtime as _runtime
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def check_platforms():
