@@ -115,6 +115,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -505,175 +506,312 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         ``target_score`` outside (0, 1].
     """
     started = time.monotonic()
-    clock = RefineClock(deadline, ceiling)
-    check_target_score(target_score)
-    if kernels is None:
-        from octcl.device.scanner import ScannerKernels
+    plan = _Plan.checked(target, schedule, deadline, kernels, config, progress, on_improvement, exact_score,
+                         ceiling, threads, target_score, aim)
+    run = _Run(plan, phantom, started)
+    with _callers_torch_threads():
+        run.score_input()
+        if not run.stop_reason:
+            run.main_run()
+        run.restarts()
+    return run.result()
 
-        kernels = ScannerKernels(config)
-    if exact_score is None:
-        from .loss import ExactScore
 
-        exact_score = ExactScore(target)
-    x_um, y_um = saved_precision(phantom.x_um), saved_precision(phantom.y_um)
-    refiner = _Refiner(x_um, y_um, kernels, target_scan(target), exact_score, schedule, config, clock, threads)
-    z_um = np.array(phantom.z_um, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        log_energy = np.log(phantom.energy_pct)
-    refiner.constrain(z_um, log_energy)
-    refiner.round_as_saved(z_um, log_energy)
-
-    trace, total = [], schedule.total_iterations
-    stop_reason = None  # set when something other than the schedule's end stops the refinement
-    iterations = 0
-
-    def as_phantom(z, u):
-        # A copy: the iterate changes in place while a writer thread may hold
-        # the phantom; exp(ln 100) can round to just above 100.
-        return Phantom(x_um, y_um, z.copy(), np.minimum(np.exp(u), MAX_ENERGY_PCT))
-
-    best = last_score = None  # the best checkpoint; (score, time) of the last exact evaluation
-    falls = []  # stage-3 steps after which the main run fell and went back to the best phantom
-
-    def report(stage):
-        if progress:
-            progress(RefineProgress(stage, iterations, total, *last_score, best.score))
-
-    def reach_target():
-        """Stop everything once the best score has reached the target score."""
-        nonlocal stop_reason
-        if target_score is not None and best.score >= target_score:
-            stop_reason = "target score"
-
-    def consider(components, stage, iteration, z, u, levels):
-        """Keep (z, u) and its rendering's ``levels`` if it beats the best, then :func:`reach_target`."""
-        nonlocal best, last_score
-        last_score = (components["mean"], time.monotonic())
-        if components["mean"] > best.score:
-            best = Checkpoint(z.copy(), u.copy(), components, stage, iteration, levels)
-            if on_improvement:
-                on_improvement(as_phantom(z, u), components)
-        reach_target()
-
-    def run(stage, phases, z, u, checkpoints, guarded=False):
-        """Adam from (z, u) through ``phases``; score after the given step counts and at the end.
-
-        Returns True, early and without scoring again, when the run has
-        stalled (:attr:`RefineSchedule.patience`); returns early too when
-        ``stop_reason`` is set. A ``guarded`` run goes back to the best
-        phantom when it falls (:attr:`RefineSchedule.max_falls`).
-        """
-        nonlocal stop_reason, iterations
-        adam = Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
-        run_start, lr_scale = best.score, 1.0
-        # The steps of these phases that the schedule's iteration count still allows.
-        plan = [phase for phase in phases for _ in range(phase.iterations)][:total - iterations]
-        best_after = [best.score]  # the best score at the run's start and after each of its checkpoints
-        lpips_kept_at = None  # the step whose LPIPS gradient the loss keeps (lpips_every > 1)
-        for step in range(len(plan) + 1):
-            last = step == len(plan)
-            clock.check_ceiling(f"in stage 3 ({stage}) after {iterations} of {total} iterations")
-            lpips_mode = "compute"
-            if not last and plan[step].lpips and schedule.lpips_every > 1:
-                if lpips_kept_at is None or step - lpips_kept_at >= schedule.lpips_every:
-                    lpips_mode, lpips_kept_at = "keep", step
-                else:
-                    lpips_mode = "reuse"
-            elif not last:
-                lpips_kept_at = None
-            loss_adjoint = f"loss_adjoint {lpips_mode}"
-            if not last and not clock.fits("render", loss_adjoint, "adam", "render", "score"):
-                stop_reason, last = "deadline", True
-            if last:  # score the final iterate (not rendered yet), if that still fits
-                if step and clock.fits("render", "score"):
-                    refiner.round_as_saved(z, u)
-                    rendering = refiner.render(z, u, for_adjoint=False)
-                    components = refiner.score(rendering)
-                    trace.append({"time_s": time.monotonic() - started, "stage": stage,
-                                  "iteration": step, "loss": None, "score": components["mean"]})
-                    consider(components, stage, step, z, u, rendering.levels)
-                    report(stage)
-                return False
-            scored = step in checkpoints and step > 0 and clock.fits("score")
-            if scored:
-                refiner.round_as_saved(z, u)
-            rendering = refiner.render(z, u, for_adjoint=True)
-            entry = {"time_s": time.monotonic() - started, "stage": stage, "iteration": step,
-                     "loss": None, "score": None}
-            trace.append(entry)
-            if scored:
-                components = refiner.score(rendering)
-                entry["score"] = components["mean"]
-                consider(components, stage, step, z, u, rendering.levels)
-                best_after.append(best.score)
-                patience = schedule.patience
-                stalled = bool(patience and len(best_after) > patience
-                               and best_after[-1] - best_after[-1 - patience] < schedule.min_gain)
-                if stop_reason or stalled:
-                    report(stage)
-                    return stalled
-                if guarded and len(falls) < schedule.max_falls and \
-                        components["mean"] < max(run_start, best.score - schedule.fall_tolerance):
-                    # Fallen (RefineSchedule.max_falls): on from the best phantom, fresh moments, shorter steps.
-                    falls.append(iterations)
-                    z[:], u[:] = best.z_um, best.log_energy
-                    adam = Adam((z.shape, u.shape), schedule.beta1, schedule.beta2, schedule.epsilon)
-                    lr_scale *= FALL_LR_FACTOR
-                    if lpips_mode == "reuse":  # the kept LPIPS gradient is the fallen iterate's
-                        lpips_mode, lpips_kept_at = "keep", step
-                    rendering = refiner.render(z, u, for_adjoint=True)
-            start = time.perf_counter()
-            value, grad_u, grad_z = refiner.gradients(rendering, plan[step].lpips, lpips_mode)
-            clock.record(loss_adjoint, time.perf_counter() - start)
-            entry["loss"] = value.loss
-            start = time.perf_counter()
-            refiner.step(adam, (z, u), (grad_z, grad_u),
-                         (lr_scale * plan[step].lr_z_um, lr_scale * plan[step].lr_u))
-            clock.record("adam", time.perf_counter() - start)
-            iterations += 1
-            report(stage)
-
-    main_length = sum(p.iterations for p in schedule.phases)
-    torch = sys.modules.get("torch")  # the caller's thread count, restored where torch was in use before
+@contextmanager
+def _callers_torch_threads():
+    """Give torch back the caller's thread count on leaving, where torch was in use before."""
+    torch = sys.modules.get("torch")
     previous_threads = None if torch is None else torch.get_num_threads()
     try:
-        refiner.threads.before_call()  # exact scores, the first included, at the loss's thread count
-        rendering = refiner.render(z_um, log_energy, for_adjoint=False)
-        initial = refiner.score(rendering)
-        best = Checkpoint(z_um.copy(), log_energy.copy(), initial, "initial", 0, rendering.levels)
-        if aim is not None and np.array_equal(rendering.levels, aim):
-            stop_reason = "ceiling"
-        last_score = (initial["mean"], time.monotonic())
-        trace.append({"time_s": last_score[1] - started, "stage": "initial", "iteration": 0,
-                      "loss": None, "score": initial["mean"]})
-        report("refine")
-        reach_target()
-        if not stop_reason:
-            stalled = run("refine", schedule.phases, z_um, log_energy,
-                          set(range(schedule.score_every, main_length, schedule.score_every)), guarded=True)
-            if stalled and not schedule.restarts:
-                stop_reason = "converged"
-        # The restarts in order; with adaptive stopping the last is repeated
-        # while each gains, until the iterations the main run left are spent.
-        index = 0
-        while schedule.restarts and not stop_reason and iterations < total and (
-                schedule.min_gain is not None or index < len(schedule.restarts)):
-            restart = schedule.restarts[min(index, len(schedule.restarts) - 1)]
-            index += 1
-            parent = best.score
-            run(f"restart {index}", (restart,), best.z_um.copy(), best.log_energy.copy(),
-                {restart.iterations // 2})
-            if schedule.min_gain is not None and not stop_reason and best.score - parent < schedule.min_gain:
-                stop_reason = "converged"
+        yield
     finally:
         if previous_threads is not None:
             torch.set_num_threads(previous_threads)
 
-    return RefineResult(phantom=as_phantom(best.z_um, best.log_energy), components=best.components,
-                        initial_components=initial, iterations=iterations, trace=trace,
-                        timings_s=dict(refiner.timings), cpu_s=dict(refiner.cpu_seconds),
-                        stopped_by_deadline=stop_reason == "deadline", stop_reason=stop_reason or "schedule",
-                        torch_threads=refiner.threads.threads, falls=falls, levels=best.levels)
+
+@dataclass(frozen=True)
+class _Plan:
+    """What :func:`refine` was asked to run, checked and completed with its defaults."""
+
+    schedule: RefineSchedule
+    scan: np.ndarray               # the target in the loss's form (:func:`target_scan`)
+    kernels: object                # octcl.device.scanner.ScannerKernels
+    exact_score: object            # levels → the components and their ``mean``
+    config: ScannerConfig
+    deadline: float | None
+    ceiling: float | None
+    threads: int | None            # None: chosen by timing (:class:`_ThreadChooser`)
+    target_score: float | None
+    aim: np.ndarray | None
+    progress: object               # callable or None
+    on_improvement: object         # callable or None
+
+    @classmethod
+    def checked(cls, target, schedule, deadline, kernels, config, progress, on_improvement, exact_score, ceiling,
+                threads, target_score, aim) -> _Plan:
+        """The arguments checked (:func:`refine`'s Raises) before the kernels and the scorer are built."""
+        check_target_score(target_score)
+        if kernels is None:
+            from octcl.device.scanner import ScannerKernels
+
+            kernels = ScannerKernels(config)
+        if exact_score is None:
+            from .loss import ExactScore
+
+            exact_score = ExactScore(target)
+        return cls(schedule, target_scan(target), kernels, exact_score, config, deadline, ceiling, threads,
+                   target_score, aim, progress, on_improvement)
+
+
+class _Run:
+    """One :func:`refine` run's state: its clock, iterate, best checkpoint, progress and trace, and its steps.
+
+    The steps, in order: :meth:`score_input`, :meth:`main_run` (unless the
+    input already ended the refinement), :meth:`restarts`, :meth:`result`.
+    ``stop_reason`` is None until something other than the schedule's end
+    stops the refinement.
+    """
+
+    def __init__(self, plan: _Plan, phantom: Phantom, started: float):
+        self.plan, self.started = plan, started
+        self.clock = RefineClock(plan.deadline, plan.ceiling)
+        self.x_um, self.y_um = saved_precision(phantom.x_um), saved_precision(phantom.y_um)
+        self.refiner = _Refiner(self.x_um, self.y_um, plan.kernels, plan.scan, plan.exact_score, plan.schedule,
+                                plan.config, self.clock, plan.threads)
+        self.z_um = np.array(phantom.z_um, dtype=np.float64)
+        with np.errstate(divide="ignore"):  # E = 0 gives u = −∞, then the energy floor
+            self.log_energy = np.log(phantom.energy_pct)
+        self.refiner.constrain(self.z_um, self.log_energy)
+        self.refiner.round_as_saved(self.z_um, self.log_energy)
+        self.total = plan.schedule.total_iterations
+        self.iterations = 0            # Adam steps so far, restarts included
+        self.trace, self.falls = [], []  # falls: the steps after which the main run went back to the best
+        self.stop_reason = None
+        self.initial = self.best = None  # the input's components; the best Checkpoint
+        self.last_score = None         # (score, time.monotonic()) of the last exact evaluation
+
+    def as_phantom(self, z_um, log_energy) -> Phantom:
+        # A copy: the iterate changes in place while a writer thread may hold
+        # the phantom; exp(ln 100) can round to just above 100.
+        return Phantom(self.x_um, self.y_um, z_um.copy(), np.minimum(np.exp(log_energy), MAX_ENERGY_PCT))
+
+    def check_ceiling(self, stage: str) -> None:
+        self.clock.check_ceiling(f"in stage 3 ({stage}) after {self.iterations} of {self.total} iterations")
+
+    def report(self, stage: str) -> None:
+        if self.plan.progress:
+            self.plan.progress(RefineProgress(stage, self.iterations, self.total, *self.last_score,
+                                              self.best.score))
+
+    def log(self, stage: str, iteration: int, score: float | None = None, now: float | None = None) -> dict:
+        """Append a trace entry (the loss is filled in once computed) and return it."""
+        now = time.monotonic() if now is None else now
+        entry = {"time_s": now - self.started, "stage": stage, "iteration": iteration, "loss": None, "score": score}
+        self.trace.append(entry)
+        return entry
+
+    def consider(self, components: dict, stage: str, iteration: int, z_um, log_energy, levels) -> None:
+        """Keep (z, u) and its rendering's ``levels`` if it beats the best, then :meth:`check_target`."""
+        self.last_score = (components["mean"], time.monotonic())
+        if components["mean"] > self.best.score:
+            self.best = Checkpoint(z_um.copy(), log_energy.copy(), components, stage, iteration, levels)
+            if self.plan.on_improvement:
+                self.plan.on_improvement(self.as_phantom(z_um, log_energy), components)
+        self.check_target()
+
+    def check_target(self) -> None:
+        """Stop everything once the best score has reached the target score."""
+        if self.plan.target_score is not None and self.best.score >= self.plan.target_score:
+            self.stop_reason = "target score"
+
+    def score_input(self) -> None:
+        """The input phantom's exact score: the first checkpoint, whatever the deadline."""
+        self.refiner.threads.before_call()  # exact scores, the first included, at the loss's thread count
+        rendering = self.refiner.render(self.z_um, self.log_energy, for_adjoint=False)
+        self.initial = self.refiner.score(rendering)
+        self.best = Checkpoint(self.z_um.copy(), self.log_energy.copy(), self.initial, "initial", 0, rendering.levels)
+        if self.plan.aim is not None and np.array_equal(rendering.levels, self.plan.aim):
+            self.stop_reason = "ceiling"
+        self.last_score = (self.initial["mean"], time.monotonic())
+        self.log("initial", 0, self.initial["mean"], now=self.last_score[1])
+        self.report("refine")
+        self.check_target()
+
+    def main_run(self) -> None:
+        """The schedule's phases from the input, guarded against falls; scored every ``score_every`` steps."""
+        schedule = self.plan.schedule
+        length = sum(phase.iterations for phase in schedule.phases)
+        checkpoints = set(range(schedule.score_every, length, schedule.score_every))
+        stalled = _Descent(self, "refine", schedule.phases, self.z_um, self.log_energy, checkpoints,
+                           guarded=True).run()
+        if stalled and not schedule.restarts:
+            self.stop_reason = "converged"
+
+    def restarts(self) -> None:
+        """The restarts in order, each from the best phantom so far with fresh moments.
+
+        With adaptive stopping the last is repeated while each gains, until
+        the iterations the main run left are spent; the first that gains
+        less than ``min_gain`` ends the refinement.
+        """
+        schedule, count = self.plan.schedule, 0
+        while self._restart_due(count):
+            restart = schedule.restarts[min(count, len(schedule.restarts) - 1)]
+            count += 1
+            parent = self.best.score
+            _Descent(self, f"restart {count}", (restart,), self.best.z_um.copy(), self.best.log_energy.copy(),
+                     {restart.iterations // 2}).run()
+            if schedule.min_gain is not None and not self.stop_reason and self.best.score - parent < schedule.min_gain:
+                self.stop_reason = "converged"
+
+    def _restart_due(self, done: int) -> bool:
+        """Whether another restart runs after ``done`` of them."""
+        schedule = self.plan.schedule
+        return bool(schedule.restarts) and not self.stop_reason and self.iterations < self.total and (
+            schedule.min_gain is not None or done < len(schedule.restarts))
+
+    def result(self) -> RefineResult:
+        best = self.best
+        return RefineResult(phantom=self.as_phantom(best.z_um, best.log_energy), components=best.components,
+                            initial_components=self.initial, iterations=self.iterations, trace=self.trace,
+                            timings_s=dict(self.refiner.timings), cpu_s=dict(self.refiner.cpu_seconds),
+                            stopped_by_deadline=self.stop_reason == "deadline",
+                            stop_reason=self.stop_reason or "schedule", torch_threads=self.refiner.threads.threads,
+                            falls=self.falls, levels=best.levels)
+
+
+def _loss_adjoint_operation(lpips_mode: str) -> str:
+    """The clock's name for a step's loss and adjoint: its duration depends on what LPIPS does."""
+    return f"loss_adjoint {lpips_mode}"
+
+
+class _Descent:
+    """One Adam run from one iterate (the main run or a restart): its steps, checkpoints and moments.
+
+    It scores the iterate after the step counts in ``checkpoints`` and at its
+    end; a ``guarded`` run goes back to the best phantom when it falls
+    (:attr:`RefineSchedule.max_falls`). ``z_um`` and ``log_energy`` change in place.
+    """
+
+    def __init__(self, refinement: _Run, stage: str, phases, z_um, log_energy, checkpoints, guarded=False):
+        self.refinement, self.stage, self.schedule = refinement, stage, refinement.plan.schedule
+        self.z_um, self.log_energy = z_um, log_energy
+        self.checkpoints, self.guarded = checkpoints, guarded
+        # The steps of these phases that the schedule's iteration count still allows.
+        allowed = refinement.total - refinement.iterations
+        self.steps = [phase for phase in phases for _ in range(phase.iterations)][:allowed]
+        self.adam = self._fresh_adam()
+        self.start_score, self.lr_scale = refinement.best.score, 1.0
+        self.best_after = [refinement.best.score]  # the best score at the start and after each checkpoint
+        self.lpips_kept_at = None  # the step whose LPIPS gradient the loss keeps (lpips_every > 1)
+        self.stalled = False
+
+    def _fresh_adam(self) -> Adam:
+        shapes = (self.z_um.shape, self.log_energy.shape)
+        return Adam(shapes, self.schedule.beta1, self.schedule.beta2, self.schedule.epsilon)
+
+    def run(self) -> bool:
+        """Take the steps; True when the run stalled (:attr:`RefineSchedule.patience`).
+
+        A stalled run, or one that set the refinement's ``stop_reason`` at a
+        checkpoint, returns there without scoring again; one the deadline
+        stops scores its last iterate if that still fits.
+        """
+        for step, phase in enumerate(self.steps):
+            self.refinement.check_ceiling(self.stage)
+            lpips_mode = self._lpips_mode(step, phase)
+            if not self.refinement.clock.fits("render", _loss_adjoint_operation(lpips_mode), "adam", "render", "score"):
+                self.refinement.stop_reason = "deadline"
+                self._score_end(step)
+                return False
+            if not self._take_step(step, phase, lpips_mode):
+                return self.stalled
+        self.refinement.check_ceiling(self.stage)
+        self._score_end(len(self.steps))
+        return False
+
+    def _lpips_mode(self, step: int, phase: Phase) -> str:
+        """What the loss does with its LPIPS terms at this step (:class:`DisplayLoss`'s ``lpips``)."""
+        if not (phase.lpips and self.schedule.lpips_every > 1):
+            self.lpips_kept_at = None  # the next LPIPS step computes and keeps afresh
+            return "compute"
+        if self.lpips_kept_at is None or step - self.lpips_kept_at >= self.schedule.lpips_every:
+            self.lpips_kept_at = step
+            return "keep"
+        return "reuse"
+
+    def _take_step(self, step: int, phase: Phase, lpips_mode: str) -> bool:
+        """Render (and score, at a checkpoint) the iterate, then an Adam step; False where the run stops."""
+        refiner = self.refinement.refiner
+        # Timed under the mode the deadline check read, even where a fall changes it.
+        operation = _loss_adjoint_operation(lpips_mode)
+        scored = step in self.checkpoints and step > 0 and self.refinement.clock.fits("score")
+        if scored:
+            refiner.round_as_saved(self.z_um, self.log_energy)
+        rendering = refiner.render(self.z_um, self.log_energy, for_adjoint=True)
+        entry = self.refinement.log(self.stage, step)
+        if scored:
+            components = self._score(rendering, step, entry)
+            if self.refinement.stop_reason or self.stalled:
+                self.refinement.report(self.stage)
+                return False
+            if self._has_fallen(components["mean"]):
+                lpips_mode = self._go_back(step, lpips_mode)
+                rendering = refiner.render(self.z_um, self.log_energy, for_adjoint=True)
+        self._adam_step(rendering, phase, lpips_mode, operation, entry)
+        return True
+
+    def _score(self, rendering: Rendering, step: int, entry: dict) -> dict:
+        """A checkpoint's exact score, into the trace and the best; sets ``stalled``."""
+        components = self.refinement.refiner.score(rendering)
+        entry["score"] = components["mean"]
+        self.refinement.consider(components, self.stage, step, self.z_um, self.log_energy, rendering.levels)
+        self.best_after.append(self.refinement.best.score)
+        patience = self.schedule.patience
+        self.stalled = bool(patience and len(self.best_after) > patience
+                            and self.best_after[-1] - self.best_after[-1 - patience] < self.schedule.min_gain)
+        return components
+
+    def _has_fallen(self, score: float) -> bool:
+        """A guarded run's checkpoint below its start or too far below the best (:attr:`RefineSchedule.max_falls`)."""
+        floor = max(self.start_score, self.refinement.best.score - self.schedule.fall_tolerance)
+        return self.guarded and len(self.refinement.falls) < self.schedule.max_falls and score < floor
+
+    def _go_back(self, step: int, lpips_mode: str) -> str:
+        """On from the best phantom with fresh moments and shorter steps; returns the step's LPIPS mode."""
+        self.refinement.falls.append(self.refinement.iterations)
+        self.z_um[:], self.log_energy[:] = self.refinement.best.z_um, self.refinement.best.log_energy
+        self.adam = self._fresh_adam()
+        self.lr_scale *= FALL_LR_FACTOR
+        if lpips_mode == "reuse":  # the kept LPIPS gradient is the fallen iterate's
+            self.lpips_kept_at = step
+            return "keep"
+        return lpips_mode
+
+    def _adam_step(self, rendering: Rendering, phase: Phase, lpips_mode: str, operation: str, entry: dict) -> None:
+        refiner, clock = self.refinement.refiner, self.refinement.clock
+        start = time.perf_counter()
+        value, grad_u, grad_z = refiner.gradients(rendering, phase.lpips, lpips_mode)
+        clock.record(operation, time.perf_counter() - start)
+        entry["loss"] = value.loss
+        start = time.perf_counter()
+        refiner.step(self.adam, (self.z_um, self.log_energy), (grad_z, grad_u),
+                     (self.lr_scale * phase.lr_z_um, self.lr_scale * phase.lr_u))
+        clock.record("adam", time.perf_counter() - start)
+        self.refinement.iterations += 1
+        self.refinement.report(self.stage)
+
+    def _score_end(self, step: int) -> None:
+        """Score the last iterate (not rendered yet) after a run of ``step`` > 0 steps, if that still fits."""
+        if not (step and self.refinement.clock.fits("render", "score")):
+            return
+        refiner = self.refinement.refiner
+        refiner.round_as_saved(self.z_um, self.log_energy)
+        rendering = refiner.render(self.z_um, self.log_energy, for_adjoint=False)
+        components = refiner.score(rendering)
+        self.refinement.log(self.stage, step, components["mean"])
+        self.refinement.consider(components, self.stage, step, self.z_um, self.log_energy, rendering.levels)
+        self.refinement.report(self.stage)
 
 
 __all__ = ["Checkpoint", "FALL_LR_FACTOR", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule",
