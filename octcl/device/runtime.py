@@ -10,7 +10,11 @@ finds the drivers:
   runtime from PyPI (``intel-opencl-rt``, the ``octcl[intel]`` extra; it
   builds on CPUs whose LLVM target PoCL 3.0 does not know) and Debian's
   Oclgrind simulator (package ``oclgrind``, which registers no ICD of its
-  own). :func:`register_runtimes` writes an ICD vendor folder naming them
+  own). So is a GPU driver's OpenCL library that is on disk but named
+  by no ICD file (:func:`gpu_driver_libraries`: NVIDIA's
+  ``libnvidia-opencl.so.1``, AMD's ``libamdocl64.so``, Intel's
+  ``libigdrcl.so``, as a container that mounts the host's driver leaves
+  them). :func:`register_runtimes` writes an ICD vendor folder naming them
   and every system ICD under the cache folder and points
   ``OCL_ICD_VENDORS`` at it, unless the user has set that variable.
 - Windows: the drivers registered in the registry (NVIDIA's and AMD's GPU
@@ -77,6 +81,17 @@ INTEL_CPU_LIBRARY = {"win32": "intelocl64.dll", "linux": "libintelocl.so"}
 SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
 #: Debian's Oclgrind ICD library (the package installs no .icd file for it).
 OCLGRIND_LIBRARY = Path("/usr/lib/oclgrind/liboclgrind-rt-icd.so")
+#: GPU drivers' OpenCL libraries, per implementation, which a driver can leave on disk with no ICD file
+#: naming it (a container that mounts the host's driver, a driver unpacked by hand): NVIDIA's, AMD ROCm's
+#: and Intel's graphics compute runtime. Each name is looked for in :data:`DRIVER_FOLDERS`.
+GPU_DRIVER_LIBRARIES = {"nvidia": ("libnvidia-opencl.so.1", "libnvidia-opencl.so"),
+                        "amd": ("libamdocl64.so",),
+                        "intel-gpu": ("libigdrcl.so",)}
+#: Where GPU drivers put those libraries, after the folders of ``LD_LIBRARY_PATH``: the loader's usual
+#: folders and the drivers' own (NVIDIA's container mount, ROCm's tree, Intel's compute runtime).
+DRIVER_FOLDERS = (Path("/usr/local/nvidia/lib64"), Path("/usr/local/nvidia/lib"), Path("/usr/lib/x86_64-linux-gnu"),
+                  Path("/usr/lib/aarch64-linux-gnu"), Path("/usr/lib64"), Path("/usr/lib"), Path("/opt/rocm/lib"),
+                  Path("/opt/rocm/opencl/lib"), Path("/usr/lib/x86_64-linux-gnu/intel-opencl"))
 #: CPU implementations, fastest first on the x86-64 CPU measured by ``scripts/bench_implementations.py``
 #: (docs/benchmarks.md, "OpenCL implementations"); others follow in listing order.
 CPU_ORDER = ("intel", "pocl")
@@ -148,12 +163,48 @@ def bundled_libraries() -> dict[str, Path]:
     return {name: path for name, path in found.items() if path is not None}
 
 
+def _system_icds() -> dict[str, str]:
+    """The system's ICD files (:data:`SYSTEM_VENDORS`): {file name: the library line it holds}."""
+    icds = {}
+    if SYSTEM_VENDORS.is_dir():
+        for icd in sorted(SYSTEM_VENDORS.glob("*.icd")):
+            try:
+                icds[icd.name] = icd.read_text()
+            except OSError:  # an unreadable ICD is one the system's own loader skips too
+                continue
+    return icds
+
+
+def gpu_driver_libraries(system_icds: dict[str, str] | None = None) -> dict[str, Path]:
+    """GPU drivers' OpenCL libraries on disk that no system ICD file names (Linux): {implementation: library}.
+
+    A driver's library counts as named where an ICD file's line ends with
+    one of its file names (:data:`GPU_DRIVER_LIBRARIES`), as a path or alone
+    (the loader then finds it on its own search path). The folders of
+    ``LD_LIBRARY_PATH`` are searched first, then :data:`DRIVER_FOLDERS`.
+    """
+    if sys.platform != "linux":
+        return {}
+    named = {Path(text.strip()).name for text in (_system_icds() if system_icds is None else system_icds).values()}
+    folders = [Path(entry) for entry in os.environ.get("LD_LIBRARY_PATH", "").split(os.pathsep) if entry]
+    found = {}
+    for name, files in GPU_DRIVER_LIBRARIES.items():
+        if named.intersection(files):
+            continue
+        library = next((folder / file for folder in [*folders, *DRIVER_FOLDERS] for file in files
+                        if (folder / file).is_file()), None)
+        if library is not None:
+            found[name] = library
+    return found
+
+
 def register_runtimes() -> Path | str | None:
     """Make the bundled implementations (:func:`bundled_libraries`) visible to the ICD loader.
 
     Linux: points ``OCL_ICD_VENDORS`` at a vendor folder of the bundled
-    and the system's ICDs (:func:`_register_vendor_folder`); returns the
-    folder. Windows: names the bundled libraries in ``OCL_ICD_FILENAMES``
+    implementations, the GPU drivers' libraries that no ICD file names
+    (:func:`gpu_driver_libraries`) and the system's ICDs
+    (:func:`_register_vendor_folder`); returns the folder. Windows: names the bundled libraries in ``OCL_ICD_FILENAMES``
     and puts their folders first on ``PATH``; returns the variable's
     value. Does nothing (returns None) where the user has set the variable
     of that system, no bundled library is installed, or the system has no
@@ -168,24 +219,21 @@ def register_runtimes() -> Path | str | None:
         os.environ["PATH"] = os.pathsep.join([*folders, os.environ.get("PATH", "")])
         os.environ[ICD_FILENAMES_ENV] = ";".join(libraries)
         return os.environ[ICD_FILENAMES_ENV]
-    if sys.platform == "darwin" or os.environ.get(ICD_VENDORS_ENV) or not bundled:
+    if sys.platform == "darwin" or os.environ.get(ICD_VENDORS_ENV):
         return None
-    return _register_vendor_folder(bundled)
+    system = _system_icds()
+    bundled = {**bundled, **gpu_driver_libraries(system)}
+    return _register_vendor_folder(bundled, system) if bundled else None
 
 
-def _register_vendor_folder(bundled: dict[str, Path]) -> Path | None:
+def _register_vendor_folder(bundled: dict[str, Path], system_icds: dict[str, str]) -> Path | None:
     """Point ``OCL_ICD_VENDORS`` at a folder of ``.icd`` files: ``bundled`` and the system's.
 
     The folder is named by its contents, so processes that share the cache
     share it; it is written to a temporary name and renamed.
     """
     icds = {f"octcl-{name}.icd": f"{path}\n" for name, path in bundled.items()}
-    if SYSTEM_VENDORS.is_dir():
-        for icd in sorted(SYSTEM_VENDORS.glob("*.icd")):
-            try:
-                icds[icd.name] = icd.read_text()
-            except OSError:  # an unreadable ICD is one the system's own loader skips too
-                continue
+    icds.update(system_icds)
     digest = hashlib.sha256(json.dumps(icds, sort_keys=True).encode()).hexdigest()[:16]
     folder = cache_dir() / "icd" / digest
     if not folder.is_dir():

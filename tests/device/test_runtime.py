@@ -273,3 +273,39 @@ def test_listing_devices_leaves_no_oclgrind_report(tmp_path):
                             env=env, timeout=120)
     assert result.returncode == 0 and "oclgrind:" in result.stdout and "builds" in result.stdout
     assert result.stderr == ""
+
+
+def test_a_gpu_driver_library_without_an_icd_file_is_registered(fresh_probes, tmp_path, monkeypatch):
+    """A GPU driver's OpenCL library on disk that no ICD file names (NVIDIA's in a container that mounts the
+    driver: ``/usr/local/nvidia/lib64/libnvidia-opencl.so.1`` and only PoCL in ``/etc/OpenCL/vendors``) gets
+    an ICD of octcl's; one that an ICD file names, by path or by name, is left to the system's."""
+    if sys.platform != "linux":
+        pytest.skip("the ICD vendor folder is Linux's loader's")
+    driver = tmp_path / "nvidia" / "lib64"
+    driver.mkdir(parents=True)
+    library = driver / "libnvidia-opencl.so.1"
+    library.touch()
+    system = tmp_path / "vendors"
+    system.mkdir()
+    (system / "pocl.icd").write_text("libpocl.so.2\n")
+    monkeypatch.setattr(_runtime, "SYSTEM_VENDORS", system)
+    monkeypatch.setattr(_runtime, "DRIVER_FOLDERS", (tmp_path / "elsewhere", driver))
+    monkeypatch.setattr(_runtime, "bundled_libraries", lambda: {})
+    monkeypatch.delenv("LD_LIBRARY_PATH", raising=False)
+    monkeypatch.delenv(_runtime.ICD_VENDORS_ENV, raising=False)
+    assert _runtime.gpu_driver_libraries() == {"nvidia": library}
+    folder = _runtime.register_runtimes()
+    assert (folder / "octcl-nvidia.icd").read_text() == f"{library}\n"
+    assert (folder / "pocl.icd").read_text() == "libpocl.so.2\n"
+    # Found on LD_LIBRARY_PATH first, as the loader would.
+    first = tmp_path / "first"
+    first.mkdir()
+    (first / "libnvidia-opencl.so.1").touch()
+    monkeypatch.setenv("LD_LIBRARY_PATH", f"{first}{_runtime.os.pathsep}{driver}")
+    assert _runtime.gpu_driver_libraries() == {"nvidia": first / "libnvidia-opencl.so.1"}
+    for named in ("libnvidia-opencl.so.1\n", f"{library}\n"):
+        (system / "nvidia.icd").write_text(named)
+        assert _runtime.gpu_driver_libraries() == {}
+    monkeypatch.delenv(_runtime.ICD_VENDORS_ENV)
+    monkeypatch.delenv("LD_LIBRARY_PATH")
+    assert _runtime.register_runtimes() is None  # nothing of octcl's to add: the system's loader as it is
