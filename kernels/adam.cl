@@ -1,5 +1,5 @@
 /*
- * One Adam step (Kingma & Ba, ICLR 2015; host/adam.py, the NumPy twin) of
+ * One Adam step (Kingma & Ba, ICLR 2015; host/optim/adam.py, the NumPy twin) of
  * a complex field F = exp(ρ)·e^{iθ} in its polar parameters, from the
  * gradient of the display loss (kernels/display_loss.cl, G_A then Hᴴ·G_A
  * by kernels/field_operator.cl):
@@ -10,15 +10,13 @@
  *   p ← p − lr·(m/c1)/(sqrt(v/c2) + ε),  c1 = 1 − β1^t, c2 = 1 − β2^t,
  *
  * then F ← exp(ρ)·(cos θ + i·sin θ) for the next step. lr, c1 and c2 come
- * from the host each step (the clock sets lr); P_m and Σ|F|² from stats[]
+ * from the host each step (the clock sets lr); P_m from stats[STAT_PEAK]
  * (kernels/display_loss.cl's layout). One work-item per cell.
  *
- * Defines: NZ, NX, ENERGY_WEIGHT, ADAM_BETA1, ADAM_BETA2, ADAM_EPSILON;
- * OCTCL_DOUBLE for float64.
+ * Defines (host/stage1/display_device.py, program_defines, as for
+ * kernels/display_loss.cl): NZ, NX, ENERGY_WEIGHT, ADAM_BETA1, ADAM_BETA2,
+ * ADAM_EPSILON, STAT_PEAK; OCTCL_DOUBLE for float64.
  */
-
-
-#define STAT_PEAK 0
 
 static inline real adam_update(real param, real grad, __global real *first, __global real *second, int e,
                                real lr, real first_correction, real second_correction) {
@@ -37,11 +35,10 @@ __kernel void adam_polar_step(__global const complex_t *field_grad, __global com
     const int e = get_global_id(0);
     const complex_t f = field[e];
     const complex_t g = field_grad[e] + (2 * (real)ENERGY_WEIGHT / (NX * NZ)) / stats[STAT_PEAK] * f;
-    /* conj(g)·f */
-    const real along_re = g.x * f.x + g.y * f.y, along_im = g.x * f.y - g.y * f.x;
-    const real rho = adam_update(log_magnitude[e], along_re, first_log_magnitude, second_log_magnitude, e,
+    const complex_t along = cconj_mul(g, f);
+    const real rho = adam_update(log_magnitude[e], along.x, first_log_magnitude, second_log_magnitude, e,
                                  lr, first_correction, second_correction);
-    const real theta = adam_update(phase[e], -along_im, first_phase, second_phase, e,
+    const real theta = adam_update(phase[e], -along.y, first_phase, second_phase, e,
                                    lr, first_correction, second_correction);
     log_magnitude[e] = rho;
     phase[e] = theta;

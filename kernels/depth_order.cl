@@ -29,9 +29,12 @@
  *
  * Reference: D. R. Musser, "Introspective sorting and selection
  * algorithms", Software: Practice and Experience 27 (1997) 983–993.
+ *
+ * Defines (octcl/device/depth_order.py, program_defines): SMALL_PARTITION
+ * (NumPy's SMALL_QUICKSORT, 15: partition while pr − pl > 15), the value
+ * the host's Python twin sorts with.
  */
 
-#define SMALL_PARTITION 15   /* NumPy's SMALL_QUICKSORT: partition while pr − pl > 15 */
 #define MAX_PENDING 32       /* pending ranges: ≤ log2 n < 31 for int positions */
 
 typedef struct {

@@ -1,10 +1,12 @@
 /*
- * The display fit's loss and its gradient (host/field.py, display_loss, the
- * float64/float32 NumPy twin), on A-scans A = H·F that kernels/field_operator.cl
- * made, stored A-scan by A-scan: pixel (n, i) at e = i·NZ + n.
+ * The display fit's loss and its gradient (host/stage1/display_loss.py,
+ * display_loss, the float64/float32 NumPy twin), on A-scans A = H·F that
+ * kernels/field_operator.cl made, stored A-scan by A-scan: pixel (n, i) at
+ * e = i·NZ + n.
  *
  * With P = |A|², m the brightest pixel (the first in the host's row-major
- * order on ties), c = 10⁻²⁴·P_m, s = DISPLAY_SLOPE and N pixels:
+ * order on ties), c = LOG_FLOOR·P_m (LOG_FLOOR = 10⁻²⁴), s = DISPLAY_SLOPE
+ * and N pixels:
  *
  *   ℓ = ½·ln(P + c),  D = 1 + s·(ℓ − ℓ_m),
  *   D̃ = max(D, −1) where the target is visible, max(D, 0) at level 0,
@@ -25,42 +27,27 @@
  * Passes, each a kernel (the sums and the brightest pixel are global, so
  * each ends a pass): peak_partials, finish_peak, display_error,
  * high_pass_residual, display_gradient, finish_loss, a_scan_gradient.
- * A pass runs PARTIALS work-groups of RWG_SIZE work-items, PASS_SIZE in
- * all, each work-item over the pixels e ≡ its global id (mod PASS_SIZE)
- * (contiguous across work-items: vector lanes on a CPU, coalesced on a
- * GPU). Sums are reduced per work-item in that order, per work-group by a
- * fixed tree in local memory and over the work-groups by one work-group:
- * no atomics, so a fit repeats bit for bit on a device.
+ * A pass runs PARTIALS work-groups of REDUCTION_GROUP_SIZE work-items,
+ * PASS_SIZE in all, each work-item over the pixels e ≡ its global id
+ * (mod PASS_SIZE) (contiguous across work-items: vector lanes on a CPU,
+ * coalesced on a GPU). Sums are reduced per work-item in that order, per
+ * work-group by the prelude's group_sum (a fixed tree in local memory) and
+ * over the work-groups by one work-group: no atomics, so a fit repeats bit
+ * for bit on a device.
  *
- * stats[] (real): STAT_PEAK P_m, STAT_ENERGY Σ|F|², STAT_ERROR Σ(|e| + e²),
- * STAT_RESIDUAL Σ|r|, STAT_DISPLAY_GRADIENT Σ ∂L/∂D; brightest[0] = e_m.
+ * stats[] (real), its slots numbered by the host: STAT_PEAK P_m, STAT_ENERGY
+ * Σ|F|², STAT_ERROR Σ(|e| + e²), STAT_RESIDUAL Σ|r|, STAT_DISPLAY_GRADIENT
+ * Σ ∂L/∂D; brightest[0] = e_m.
  *
- * Defines: NZ, NX, RWG_SIZE (a power of two), PARTIALS (work-groups of a
- * pass over the pixels), DISPLAY_SLOPE, FLOOR_VISIBLE (−1), HIGH_PASS_WEIGHT,
- * ENERGY_WEIGHT; OCTCL_DOUBLE for float64.
+ * Defines (host/stage1/display_device.py, program_defines): NZ, NX,
+ * REDUCTION_GROUP_SIZE (a power of two), PARTIALS (work-groups of a pass
+ * over the pixels), DISPLAY_SLOPE, FLOOR_VISIBLE (−1), HIGH_PASS_WEIGHT,
+ * ENERGY_WEIGHT, LOG_FLOOR, STAT_PEAK, STAT_ENERGY, STAT_ERROR,
+ * STAT_RESIDUAL, STAT_DISPLAY_GRADIENT; OCTCL_DOUBLE for float64.
  */
 
-
 #define PIXELS (NX * NZ)
-#define PASS_SIZE (PARTIALS * RWG_SIZE)
-#define STAT_PEAK 0
-#define STAT_ENERGY 1
-#define STAT_ERROR 2
-#define STAT_RESIDUAL 3
-#define STAT_DISPLAY_GRADIENT 4
-
-/* Σ of each work-item's value over the work-group, in a fixed order; every
- * work-item calls it; the sum is valid in work-item 0. */
-static real group_sum(__local real *scratch, real value) {
-    const int lid = get_local_id(0);
-    scratch[lid] = value;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int width = RWG_SIZE >> 1; width > 0; width >>= 1) {
-        if (lid < width) scratch[lid] += scratch[lid + width];
-        barrier(CLK_LOCAL_MEM_FENCE);
-    }
-    return scratch[0];
-}
+#define PASS_SIZE (PARTIALS * REDUCTION_GROUP_SIZE)
 
 /* The host's row-major index of device pixel e, for the tie order of the brightest pixel. */
 static inline int host_index(int e) { return (e % NZ) * NX + e / NZ; }
@@ -73,7 +60,7 @@ static inline bool brighter(real power, int e, real best_power, int best) {
 static void group_brightest(__local real *power, __local int *index) {
     const int lid = get_local_id(0);
     barrier(CLK_LOCAL_MEM_FENCE);
-    for (int width = RWG_SIZE >> 1; width > 0; width >>= 1) {
+    for (int width = REDUCTION_GROUP_SIZE >> 1; width > 0; width >>= 1) {
         if (lid < width && brighter(power[lid + width], index[lid + width], power[lid], index[lid])) {
             power[lid] = power[lid + width];
             index[lid] = index[lid + width];
@@ -83,11 +70,11 @@ static void group_brightest(__local real *power, __local int *index) {
 }
 
 /* Per work-group: the brightest pixel of its pixels and their Σ|F|². */
-__kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void peak_partials(__global const complex_t *a_scans, __global const complex_t *field,
                    __global real *partial_power, __global int *partial_index, __global real *partial_energy) {
-    __local real power[RWG_SIZE], scratch[RWG_SIZE];
-    __local int index[RWG_SIZE];
+    __local real power[REDUCTION_GROUP_SIZE], scratch[REDUCTION_GROUP_SIZE];
+    __local int index[REDUCTION_GROUP_SIZE];
     const int lid = get_local_id(0);
     real best_power = -1, energy = 0;
     int best = 0;
@@ -102,7 +89,7 @@ void peak_partials(__global const complex_t *a_scans, __global const complex_t *
     power[lid] = best_power;
     index[lid] = best;
     group_brightest(power, index);
-    energy = group_sum(scratch, energy);
+    energy = group_sum(energy, scratch, REDUCTION_GROUP_SIZE);
     if (lid == 0) {
         partial_power[get_group_id(0)] = power[0];
         partial_index[get_group_id(0)] = index[0];
@@ -111,15 +98,15 @@ void peak_partials(__global const complex_t *a_scans, __global const complex_t *
 }
 
 /* One work-group: P_m, e_m and Σ|F|² from the partials of peak_partials. */
-__kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void finish_peak(__global const real *partial_power, __global const int *partial_index,
                  __global const real *partial_energy, __global real *stats, __global int *brightest) {
-    __local real power[RWG_SIZE], scratch[RWG_SIZE];
-    __local int index[RWG_SIZE];
+    __local real power[REDUCTION_GROUP_SIZE], scratch[REDUCTION_GROUP_SIZE];
+    __local int index[REDUCTION_GROUP_SIZE];
     const int lid = get_local_id(0);
     real best_power = -1, energy = 0;
     int best = 0;
-    for (int g = lid; g < PARTIALS; g += RWG_SIZE) {
+    for (int g = lid; g < PARTIALS; g += REDUCTION_GROUP_SIZE) {
         if (brighter(partial_power[g], partial_index[g], best_power, best)) {
             best_power = partial_power[g];
             best = partial_index[g];
@@ -129,7 +116,7 @@ void finish_peak(__global const real *partial_power, __global const int *partial
     power[lid] = best_power;
     index[lid] = best;
     group_brightest(power, index);
-    energy = group_sum(scratch, energy);
+    energy = group_sum(energy, scratch, REDUCTION_GROUP_SIZE);
     if (lid == 0) {
         stats[STAT_PEAK] = power[0];
         brightest[0] = index[0];
@@ -139,12 +126,12 @@ void finish_peak(__global const real *partial_power, __global const int *partial
 
 /* D̃ of each pixel, whether its clamp passes the gradient (D at or above the bound), and Σ(|e| + e²) per
  * work-group. */
-__kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void display_error(__global const complex_t *a_scans, __global const real *stats, __global const int *brightest,
                    __global const real *goal_display, __global const char *visible,
                    __global real *clamped, __global char *passes, __global real *partial_error) {
-    __local real scratch[RWG_SIZE];
-    const real peak = stats[STAT_PEAK], shift = (real)1e-24 * peak;
+    __local real scratch[REDUCTION_GROUP_SIZE];
+    const real peak = stats[STAT_PEAK], shift = (real)LOG_FLOOR * peak;
     const complex_t a_m = a_scans[brightest[0]];
     const real log_peak = log(dot(a_m, a_m) + shift);
     real term = 0;
@@ -157,7 +144,7 @@ void display_error(__global const complex_t *a_scans, __global const real *stats
         passes[e] = d >= floor_value;
         term += fabs(error) + error * error;
     }
-    const real sum = group_sum(scratch, term);
+    const real sum = group_sum(term, scratch, REDUCTION_GROUP_SIZE);
     if (get_local_id(0) == 0) partial_error[get_group_id(0)] = sum;
 }
 
@@ -173,26 +160,26 @@ static inline real box3(__global const real *image, int n, int i) {
 }
 
 /* sgn r, r = hp(D̃) − hp(D*), and Σ|r| per work-group. */
-__kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void high_pass_residual(__global const real *clamped, __global const real *goal_high_pass,
                         __global real *residual_sign, __global real *partial_residual) {
-    __local real scratch[RWG_SIZE];
+    __local real scratch[REDUCTION_GROUP_SIZE];
     real term = 0;
     for (int e = get_global_id(0); e < PIXELS; e += PASS_SIZE) {
         const real residual = clamped[e] - box3(clamped, e % NZ, e / NZ) - goal_high_pass[e];
         residual_sign[e] = sign(residual);
         term += fabs(residual);
     }
-    const real sum = group_sum(scratch, term);
+    const real sum = group_sum(term, scratch, REDUCTION_GROUP_SIZE);
     if (get_local_id(0) == 0) partial_residual[get_group_id(0)] = sum;
 }
 
 /* ∂L/∂D (zero where a clamp holds D̃ at its bound) and its Σ per work-group. */
-__kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void display_gradient(__global const real *clamped, __global const char *passes,
                       __global const real *goal_display, __global const real *residual_sign,
                       __global real *display_grad, __global real *partial_display_grad) {
-    __local real scratch[RWG_SIZE];
+    __local real scratch[REDUCTION_GROUP_SIZE];
     real total = 0;
     for (int e = get_global_id(0); e < PIXELS; e += PASS_SIZE) {
         const real error = clamped[e] - goal_display[e];
@@ -203,27 +190,27 @@ void display_gradient(__global const real *clamped, __global const char *passes,
         display_grad[e] = d_display;
         total += d_display;
     }
-    const real sum = group_sum(scratch, total);
+    const real sum = group_sum(total, scratch, REDUCTION_GROUP_SIZE);
     if (get_local_id(0) == 0) partial_display_grad[get_group_id(0)] = sum;
 }
 
 /* One work-group: Σ(|e| + e²), Σ|r| and Σ ∂L/∂D from their partials, and the loss into losses[step]. */
-__kernel __attribute__((reqd_work_group_size(RWG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void finish_loss(__global const real *partial_error, __global const real *partial_residual,
                  __global const real *partial_display_grad, __global real *stats, __global real *losses, int step) {
-    __local real scratch[RWG_SIZE];
+    __local real scratch[REDUCTION_GROUP_SIZE];
     const int lid = get_local_id(0);
     real error = 0, residual = 0, display_grad = 0;
-    for (int g = lid; g < PARTIALS; g += RWG_SIZE) {
+    for (int g = lid; g < PARTIALS; g += REDUCTION_GROUP_SIZE) {
         error += partial_error[g];
         residual += partial_residual[g];
         display_grad += partial_display_grad[g];
     }
-    error = group_sum(scratch, error);
+    error = group_sum(error, scratch, REDUCTION_GROUP_SIZE);
     barrier(CLK_LOCAL_MEM_FENCE);
-    residual = group_sum(scratch, residual);
+    residual = group_sum(residual, scratch, REDUCTION_GROUP_SIZE);
     barrier(CLK_LOCAL_MEM_FENCE);
-    display_grad = group_sum(scratch, display_grad);
+    display_grad = group_sum(display_grad, scratch, REDUCTION_GROUP_SIZE);
     if (lid == 0) {
         stats[STAT_ERROR] = error;
         stats[STAT_RESIDUAL] = residual;
@@ -244,10 +231,10 @@ __kernel void a_scan_gradient(__global const complex_t *a_scans, __global const 
     complex_t grad;
     if (e == brightest[0]) {
         d_log -= (real)DISPLAY_SLOPE * stats[STAT_DISPLAY_GRADIENT];
-        grad = d_log / (dot(a, a) + (real)1e-24 * peak) * a
+        grad = d_log / (dot(a, a) + (real)LOG_FLOOR * peak) * a
                - 2 * (real)ENERGY_WEIGHT * (stats[STAT_ENERGY] / PIXELS) / (peak * peak) * a;
     } else {
-        grad = d_log / (dot(a, a) + (real)1e-24 * peak) * a;
+        grad = d_log / (dot(a, a) + (real)LOG_FLOOR * peak) * a;
     }
     a_scan_grad[e] = grad;
 }

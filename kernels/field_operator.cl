@@ -1,5 +1,5 @@
 /*
- * The field operator of stage 1 (host/field.py, FieldOperator) and its
+ * The field operator of stage 1 (host/stage1/operator.py, FieldOperator) and its
  * regularised inverse, on a field stored A-scan by A-scan: element (n, i),
  * depth n of A-scan i, at i·NZ + n, so that a column is contiguous
  * (coalesced on a GPU, one vector load per lane group on a CPU).
@@ -12,7 +12,7 @@
  *
  *   Both have real transfer functions (w real; g real and even), so H is
  *   self-adjoint: Hᴴ = H, ⟨H·x, y⟩ = ⟨x, H·y⟩, and the adjoint runs the
- *   same two kernels (tests/test_field_kernels.py checks the identity).
+ *   same two kernels (tests/stage1/test_operator_device.py checks the identity).
  *
  *   H⁺·A = IDFT_2(conj(Ĥ)/(|Ĥ|² + λ)·DFT_2(A)) over the columns zero-padded
  *   to PADDED (a power of two ≥ NX + 2·REACH): depth_fft forward, then
@@ -32,14 +32,9 @@
  * exp(−2πi·k/TWIDDLE_N), k < TWIDDLE_N, from the host in float64; a
  * shorter transform strides through it.
  *
- * Defines: NZ, LOG2_NZ, NX, REACH, PADDED, LOG2_PADDED, TWIDDLE_N, WG_SIZE;
- * OCTCL_DOUBLE for float64.
+ * Defines (host/stage1/operator_device.py, program_defines): NZ, LOG2_NZ, NX,
+ * REACH, PADDED, LOG2_PADDED, TWIDDLE_N, WG_SIZE; OCTCL_DOUBLE for float64.
  */
-
-
-static inline complex_t cmul(complex_t a, complex_t b) {
-    return (complex_t)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
-}
 
 /* x·exp(sign·2πi·k/TWIDDLE_N) from the table twiddle[k] = exp(−2πi·k/TWIDDLE_N), k < TWIDDLE_N. */
 static inline complex_t twiddled(complex_t x, int k, int sign, __global const complex_t *twiddle) {

@@ -1,67 +1,53 @@
 /*
- * L-BFGS's vector operations (host/lbfgs.py's algorithm; host/lbfgs_device.py the op, the loop and
- * the compact representation's small algebra) on device vectors of n reals: a complex field is the
- * real vector of its (Re, Im) pairs, 2·NX·NZ reals. The pairs (s_j, y_j) live in two rings of slots,
- * `s` and `y`, slot j the n reals from j·n; `stored` is a mask of the slots a kernel reads, bit j for
- * slot j, at most 63 slots (a loop over the slots ends at the mask's highest bit). Sums go into
- * partials and from there, in a fixed order (no atomics: the same bits every run), into a small
- * device array `scalars`:
+ * L-BFGS's vector operations (host/optim/lbfgs.py's algorithm; host/optim/lbfgs_device.py the op,
+ * the loop and the compact representation's small algebra) on device vectors of n reals: a complex
+ * field is the real vector of its (Re, Im) pairs, 2·NX·NZ reals. The pairs (s_j, y_j) live in two
+ * rings of slots, `s` and `y`, slot j the n reals from j·n; `stored` is a mask of the slots a kernel
+ * reads, bit j for slot j, at most 63 slots (a loop over the slots ends at the mask's highest bit).
+ * Sums go into partials and from there, in a fixed order (no atomics: the same bits every run),
+ * into a small device array `scalars`:
  *
  *   dot_partial      partials[g] = Σ x_i·y_i over group g's elements: work-item j of the launch's
- *                    G·WG_SIZE adds elements j, j + G·WG_SIZE, … in that order, then the group
- *                    adds its work-items' sums by a fixed tree in local memory;
+ *                    G·REDUCTION_GROUP_SIZE adds elements j, j + G·REDUCTION_GROUP_SIZE, … in that
+ *                    order, then the group adds its work-items' sums by the prelude's group_sum (a
+ *                    fixed tree in local memory);
  *   finish_sum       scalars[slot] = Σ_g partials[g], one work-group, the same way;
  *   axpy             out = x + c·d, c from the host (the line search's trial point x + t·d);
  *   pair_dots        a trial step's pair and every dot product the next direction needs, in one
  *                    pass: s_new = x' − x and y_new = g' − g into the rings' slot `fresh`, the sums
- *                    ⟨g', g'⟩, ⟨s_new, y_new⟩, ⟨y_new, y_new⟩, ⟨s_new, g'⟩, ⟨y_new, g'⟩ (k = 0 … 4),
- *                    and for each stored slot j ⟨s_j, g'⟩, ⟨y_j, g'⟩, ⟨s_j, y_new⟩, ⟨y_j, y_new⟩
- *                    (k = 5 + 4j …); work-item p of P adds the elements p, p + P, … and writes its
- *                    sum k to partials[k·P + p], so a group's g' and y_new come from cache for each
- *                    slot after the first;
+ *                    ⟨g', g'⟩, ⟨s_new, y_new⟩, ⟨y_new, y_new⟩, ⟨s_new, g'⟩, ⟨y_new, g'⟩
+ *                    (k = 0 … PAIR_SUMS − 1, PAIR_SUMS = 5), and for each stored slot j ⟨s_j, g'⟩,
+ *                    ⟨y_j, g'⟩, ⟨s_j, y_new⟩, ⟨y_j, y_new⟩ (k = PAIR_SUMS + 4j …); work-item p
+ *                    of P adds the elements p, p + P, … and writes its sum k to partials[k·P + p],
+ *                    so a group's g' and y_new come from cache for each slot after the first;
  *   finish_sums      scalars[base + k] = Σ_p partials[k·P + p] for pair_dots' sums of the stored
- *                    slots and the first five, one work-group each, as finish_sum;
+ *                    slots and the first PAIR_SUMS, one work-group each, as finish_sum;
  *   direction        d = c[0]·g + Σ_{j stored} (c[1 + 2j]·s_j + c[2 + 2j]·y_j), the coefficients c a
  *                    device array, the slots in increasing order, and the first trial point
  *                    x + t·d in the same pass.
  *
  * Element-wise kernels take one work-item per element; dot_partial and pair_dots take groups of
- * WG_SIZE, finish_sum one group, finish_sums one group per sum.
+ * REDUCTION_GROUP_SIZE, finish_sum one group, finish_sums one group per sum.
  *
- * Defines: WG_SIZE (a power of two); OCTCL_DOUBLE for float64.
+ * Defines (host/optim/lbfgs_device.py, program_defines): REDUCTION_GROUP_SIZE (a power of two),
+ * PAIR_SUMS; OCTCL_DOUBLE for float64.
  */
 
-
-/* The sums of pair_dots before the stored slots' four each. */
-#define PAIR_SUMS 5
-
-/* Σ of every work-item's value over the group by a fixed tree; valid in every work-item. */
-static real group_sum(real value, __local real *sums) {
-    const int lid = get_local_id(0);
-    sums[lid] = value;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int width = WG_SIZE >> 1; width > 0; width >>= 1) {
-        if (lid < width) sums[lid] += sums[lid + width];
-        barrier(CLK_LOCAL_MEM_FENCE);
-    }
-    return sums[0];
-}
-
-__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void dot_partial(__global const real *x, __global const real *y, int n, __global real *partials) {
-    __local real sums[WG_SIZE];
+    __local real sums[REDUCTION_GROUP_SIZE];
     real sum = 0;
     for (int i = get_global_id(0); i < n; i += get_global_size(0)) sum += x[i] * y[i];
-    sum = group_sum(sum, sums);
+    sum = group_sum(sum, sums, REDUCTION_GROUP_SIZE);
     if (get_local_id(0) == 0) partials[get_group_id(0)] = sum;
 }
 
-__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void finish_sum(__global const real *partials, int count, __global real *scalars, int slot) {
-    __local real sums[WG_SIZE];
+    __local real sums[REDUCTION_GROUP_SIZE];
     real sum = 0;
-    for (int g = get_local_id(0); g < count; g += WG_SIZE) sum += partials[g];
-    sum = group_sum(sum, sums);
+    for (int g = get_local_id(0); g < count; g += REDUCTION_GROUP_SIZE) sum += partials[g];
+    sum = group_sum(sum, sums, REDUCTION_GROUP_SIZE);
     if (get_local_id(0) == 0) scalars[slot] = sum;
 }
 
@@ -72,7 +58,7 @@ __kernel void axpy(__global const real *x, real c, __global const real *d, __glo
 
 /* Every work-item writes its own sums, so that no barrier sits in the loop over the slots (with a group's tree
  * there, Intel's CPU runtime took 4-6 ms for this pass at m = 10 instead of 1.3-2.2 ms). */
-__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void pair_dots(__global const real *x_next, __global const real *x, __global const real *g_next,
                __global const real *g, __global real *s, __global real *y, int n, int fresh, ulong stored,
                __global real *partials) {
@@ -113,14 +99,14 @@ void pair_dots(__global const real *x_next, __global const real *x, __global con
     }
 }
 
-__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void finish_sums(__global const real *partials, int count, ulong stored, __global real *scalars, int base) {
-    __local real sums[WG_SIZE];
+    __local real sums[REDUCTION_GROUP_SIZE];
     const int k = get_group_id(0);
     if (k >= PAIR_SUMS && ((stored >> ((k - PAIR_SUMS) / 4)) & 1) == 0) return;  /* the whole group */
     real sum = 0;
-    for (int g = get_local_id(0); g < count; g += WG_SIZE) sum += partials[k * count + g];
-    sum = group_sum(sum, sums);
+    for (int g = get_local_id(0); g < count; g += REDUCTION_GROUP_SIZE) sum += partials[k * count + g];
+    sum = group_sum(sum, sums, REDUCTION_GROUP_SIZE);
     if (get_local_id(0) == 0) scalars[base + k] = sum;
 }
 

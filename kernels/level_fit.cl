@@ -1,9 +1,9 @@
 /*
- * Stage 1's level intervals on a device field (host/linear.py: retrieve_field's projections and
- * fit_levels' hinge; host/level_kernels.py the op). A-scans as kernels/field_operator.cl stores
- * them, pixel (n, i) at i·NZ + n; lower and upper in the same order. Each pixel p's aimed level
- * allows |A_p| in [l_p, u_p]; the set 𝓜 of such A is a product of annuli, and its projection keeps
- * each pixel's phase:
+ * Stage 1's level intervals on a device field (host/stage1/projections.py, retrieve_field, and
+ * host/stage1/hinge.py, fit_levels; host/stage1/levels_device.py the op). A-scans as
+ * kernels/field_operator.cl stores them, pixel (n, i) at i·NZ + n; lower and upper in the same
+ * order. Each pixel p's aimed level allows |A_p| in [l_p, u_p]; the set 𝓜 of such A is a product
+ * of annuli, and its projection keeps each pixel's phase:
  *
  *   P_𝓜(A)_p = A_p·c_p/|A_p|,  c_p = min(max(|A_p|, l_p), u_p)   (|A_p| > 0; c_p itself at A_p = 0).
  *
@@ -17,18 +17,18 @@
  * Hinge (fit_levels): f(F) = ½·Σ_p dist(|A_p|, [l_p, u_p])² = ½·Σ_p |r_p|², r = A − P_𝓜(A);
  * its gradient with respect to (Re F, Im F) is Hᴴ·r.
  *
- *   hinge_residual       r and partial sums of ½·|r|²: work-item j of the launch's G·WG_SIZE
- *                        adds pixels j, j + G·WG_SIZE, … in that order, then its group adds
- *                        the work-items' sums by a fixed tree in local memory; no atomics, so
- *                        the same bits every run. kernels/lbfgs.cl's finish_sum adds the G
- *                        group sums.
+ *   hinge_residual       r and partial sums of ½·|r|²: work-item j of the launch's
+ *                        G·REDUCTION_GROUP_SIZE adds pixels j, j + G·REDUCTION_GROUP_SIZE, … in
+ *                        that order, then its group adds the work-items' sums by the prelude's
+ *                        group_sum (a fixed tree in local memory); no atomics, so the same bits
+ *                        every run. kernels/lbfgs.cl's finish_sum adds the G group sums.
  *
  * Element-wise kernels take one work-item per pixel. In-place calls (out = the input A) are
  * allowed: each work-item reads its pixel before writing it.
  *
- * Defines: WG_SIZE (a power of two); OCTCL_DOUBLE for float64.
+ * Defines (host/stage1/levels_device.py, program_defines): REDUCTION_GROUP_SIZE (a power of two);
+ * OCTCL_DOUBLE for float64.
  */
-
 
 /* P_𝓜 at one pixel. |A| as sqrt(Re² + Im²): hypot cost 30 times as much in Intel's CPU runtime, and
  * the two differ only where Re² + Im² leaves the normal range (|A| < 1e−19 in float32, the field
@@ -37,18 +37,6 @@ static inline complex_t projected(complex_t a, real lower, real upper) {
     const real magnitude = sqrt(a.x * a.x + a.y * a.y);
     const real clipped = fmin(fmax(magnitude, lower), upper);
     return magnitude > 0 ? a * (clipped / magnitude) : (complex_t)(clipped, 0);
-}
-
-/* Σ of every work-item's value over the group by a fixed tree; every work-item gets it. */
-static real group_sum(real value, __local real *sums) {
-    const int lid = get_local_id(0);
-    sums[lid] = value;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int width = WG_SIZE >> 1; width > 0; width >>= 1) {
-        if (lid < width) sums[lid] += sums[lid + width];
-        barrier(CLK_LOCAL_MEM_FENCE);
-    }
-    return sums[0];
 }
 
 /* out = P_𝓜(A) − A. */
@@ -69,10 +57,10 @@ __kernel void momentum_step(__global complex_t *field, __global complex_t *ahead
 }
 
 /* residual = A − P_𝓜(A); partials[g] = ½·Σ|r_p|² over group g's pixels. */
-__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+__kernel __attribute__((reqd_work_group_size(REDUCTION_GROUP_SIZE, 1, 1)))
 void hinge_residual(__global const complex_t *a_scans, __global const real *lower, __global const real *upper,
                     int pixels, __global complex_t *residual, __global real *partials) {
-    __local real sums[WG_SIZE];
+    __local real sums[REDUCTION_GROUP_SIZE];
     real sum = 0;
     for (int p = get_global_id(0); p < pixels; p += get_global_size(0)) {
         const complex_t a = a_scans[p];
@@ -80,6 +68,6 @@ void hinge_residual(__global const complex_t *a_scans, __global const real *lowe
         residual[p] = r;
         sum += r.x * r.x + r.y * r.y;
     }
-    sum = group_sum(sum, sums);
+    sum = group_sum(sum, sums, REDUCTION_GROUP_SIZE);
     if (get_local_id(0) == 0) partials[get_group_id(0)] = (real)0.5 * sum;
 }

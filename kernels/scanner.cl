@@ -87,20 +87,21 @@
  * not visited), and reduce_slots sums each scatterer's slots in a fixed
  * order: the result does not depend on scheduling.
  *
- * Compile-time constants: NZ, GRID (= 2·NZ, a power of two), LOG2_GRID,
- * LOG2_NZ, SPREAD_WIDTH (≤ 16), WG_SIZE (work-group variant, a power of
- * two); OCTCL_DOUBLE selects double precision.
+ * Defines (octcl/device/scanner.py, program_defines): NZ, GRID (= 2·NZ, a
+ * power of two), LOG2_GRID, LOG2_NZ, SPREAD_WIDTH (≤ 16), WG_SIZE
+ * (work-group variant, a power of two), LANES (below), NO_AMPLITUDE (the
+ * exponent of a zero amplitude: never the largest in a window);
+ * OCTCL_DOUBLE selects double precision.
  */
 
-
 /* Vector maths works on LANES reals at a time: 8 floats or 4 doubles, the
- * 256 bits of an AVX2 register. (Wider vectors of doubles are passed
- * differently without AVX-512, and PoCL's LLVM then fails to compile their
- * builtins: exp, sqrt, fma, select.) A comparison of reals gives a
- * lane_mask_t (−1 where it holds, 0 elsewhere); one of lane indices an int
- * vector, widened by index_mask to the reals' mask. */
-#ifdef OCTCL_DOUBLE
-#define LANES 4
+ * 256 bits of an AVX2 register; the host launches one work-item per LANES
+ * A-scans. (Wider vectors of doubles are passed differently without
+ * AVX-512, and PoCL's LLVM then fails to compile their builtins: exp, sqrt,
+ * fma, select.) A comparison of reals gives a lane_mask_t (−1 where it
+ * holds, 0 elsewhere); one of lane indices an int vector, widened by
+ * index_mask to the reals' mask. */
+#if defined(OCTCL_DOUBLE) && LANES == 4
 typedef double4 lanes_t;
 typedef int4 lane_index_t;
 typedef long4 lane_mask_t;
@@ -108,8 +109,7 @@ typedef long lane_flag_t;
 #define convert_lanes convert_double4
 #define index_mask(mask) convert_long4(mask)
 #define LANE_NUMBERS ((int4)(0, 1, 2, 3))
-#else
-#define LANES 8
+#elif !defined(OCTCL_DOUBLE) && LANES == 8
 typedef float8 lanes_t;
 typedef int8 lane_index_t;
 typedef int8 lane_mask_t;
@@ -117,6 +117,8 @@ typedef int lane_flag_t;
 #define convert_lanes convert_float8
 #define index_mask(mask) (mask)
 #define LANE_NUMBERS ((int8)(0, 1, 2, 3, 4, 5, 6, 7))
+#else
+#error "LANES: 8 floats or 4 doubles, VECTOR_BYTES = 32 (octcl/device/scanner.py)"
 #endif
 #define LANE(vector, l) (((real *)&(vector))[l])
 #define LANE_HOLDS(mask, l) (((lane_flag_t *)&(mask))[l])
@@ -135,14 +137,6 @@ typedef struct {
     real dk;              /* δk, rad/µm */
     real min_transmission;/* an A-scan stops once T ≤ this (0: only behind a mirror) */
 } ScannerParams;
-
-static inline complex_t cmul(complex_t a, complex_t b) {
-    return (complex_t)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
-}
-
-static inline complex_t cconj_mul(complex_t a, complex_t b) { /* conj(a)·b */
-    return (complex_t)(a.x * b.x + a.y * b.y, a.x * b.y - a.y * b.x);
-}
 
 /* Macros rather than functions so that they take a real or a lanes_t alike:
  * one definition for the work-group kernels' scalars and the work-item
@@ -177,9 +171,6 @@ static inline real2 dw_mul(real2 a, real2 b) {
     const real hi = product + error;
     return (real2)(hi, error - (hi - product));
 }
-
-/* The exponent of a zero amplitude: never the largest in a window. */
-#define NO_AMPLITUDE (-1 << 20)
 
 /* A scatterer as a list sees it. */
 typedef struct {

@@ -10,7 +10,7 @@ measures against the float64 NumPy reference:
 - gradient relative error ‖g − g*‖/‖g*‖ of ∂L/∂z and ∂L/∂u for the smooth
   loss L = ½·Σ(D − D_ref)²·w, against float64 kernels at W = 12, R² = 20
   (those are checked against finite differences of the reference in
-  tests/test_scanner_kernels.py),
+  tests/device/test_scanner.py),
 - render time (layout + forward, and each alone) and gradient time
   (forward + adjoint), the median of ``--repeats`` runs, and the reference's
   render time in the same run;

@@ -23,14 +23,19 @@ the kernel's in vendor and OS; that is how Debian's libclc is built and is
 ignored when the architectures agree. The kernels compile warning-free today,
 so any other warning is new and worth a look.
 
-Build recipe: the defines come from ``octcl.device.programs.build_options``,
-``octcl.device.scanner.program_defines`` and
-``octcl.host.stage1.operator_device.program_defines`` (the functions octcl's own
-builds use), at the default scanner configuration (Nz = 256, Nx = 512; the
-field operator's work-groups of 64, as on any device that allows them); the
-language is OpenCL C 1.2 at -O3, as an OpenCL driver compiles it. libclc
-provides the builtins (``-mlink-builtin-bitcode``: only the functions used
-are linked and they take the target's features).
+Build recipe: the source is ``octcl.device.programs.kernel_source`` (the
+prelude ``kernels/prelude.cl``, ``#line 1``, then the kernel file: what octcl
+builds; with ``--kernel-dir`` both files come from that folder) and the
+options ``octcl.device.programs.build_options`` of each op's own
+``program_defines`` (``octcl.device.scanner``, ``octcl.device.depth_order``,
+``octcl.host.stage1.operator_device``, ``octcl.host.stage1.display_device``,
+``octcl.host.stage1.levels_device``, ``octcl.host.optim.lbfgs_device``: the
+functions octcl's own builds use), at the default scanner configuration
+(Nz = 256, Nx = 512; work-groups of 64 for the field operator and the
+reductions, as on any device that allows them); the language is OpenCL C 1.2
+at -O3, as an OpenCL driver compiles it. libclc provides the builtins
+(``-mlink-builtin-bitcode``: only the functions used are linked and they take
+the target's features).
 
 Fields reported per kernel (``--json``: one object a line):
 
@@ -72,7 +77,8 @@ LDS.
 
 Registry: ``KERNEL_FILES`` names how each kernel file is built and ``KNOBS``
 the compile-time knob values compiled. Kernel names are read from the
-compiler's output; a ``kernels/*.cl`` that is not registered fails the run.
+compiler's output; a ``kernels/*.cl`` that is not registered (other than the
+prelude, which is part of every build) fails the run.
 
 Measured (docs/benchmarks.md): the default builds (3 kernel files, W ∈ {8,
 16}, 3 targets) take about 70 s of CPU, about 40 s on two cores; almost all
@@ -107,11 +113,12 @@ from typing import Callable
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from octcl.device.programs import build_options
-from octcl.device.scanner import KernelSettings, program_defines
 from octcl.config import DEFAULT_CONFIG  # noqa: E402
+from octcl.device import depth_order
+from octcl.device.programs import PRELUDE, build_options, kernel_source
+from octcl.device.scanner import KernelSettings, program_defines
 from octcl.host.optim import lbfgs_device
-from octcl.host.stage1 import display_device as display_kernels, operator_device as field_kernels
+from octcl.host.stage1 import display_device, levels_device, operator_device
 from octcl.host.stage1.operator import lateral_taps
 
 
@@ -120,10 +127,11 @@ from octcl.host.stage1.operator import lateral_taps
 class KernelFile:
     """How octcl builds ``kernels/<name>.cl``.
 
-    ``defines`` maps a :class:`KernelSettings` to the file's ``-D`` defines
-    (the function octcl's own build uses); ``precisions`` are the builds made
-    of each: "float32", "float64" (``-DOCTCL_DOUBLE``), or "integer" for a
-    file without floating point, compiled once.
+    ``defines`` maps a :class:`KernelSettings` (its ``double`` that of the
+    build) to the file's ``-D`` defines (the function octcl's own build uses);
+    ``precisions`` are the builds made of each: "float32", "float64"
+    (``-DOCTCL_DOUBLE``), or "integer" for a file without floating point,
+    compiled once.
     """
 
     name: str
@@ -135,35 +143,40 @@ def _scanner_defines(settings: KernelSettings) -> tuple:
     return program_defines(DEFAULT_CONFIG, settings)
 
 
+def _depth_order_defines(settings: KernelSettings) -> tuple:
+    return depth_order.program_defines()
+
+
 def _field_operator_defines(settings: KernelSettings) -> tuple:
     """The field operator's defines: R = 2 taps either side, P = 1024 padded columns (no knob)."""
-    return field_kernels.program_defines(DEFAULT_CONFIG, lateral_taps(DEFAULT_CONFIG).size // 2)
+    return operator_device.program_defines(DEFAULT_CONFIG, lateral_taps(DEFAULT_CONFIG).size // 2)
 
 
 def _display_fit_defines(settings: KernelSettings) -> tuple:
     """The display fit's defines (``display_loss.cl``, ``adam.cl``) as a GPU gets them: λ_E = 0.1, a work-group
     per 8·64 pixels of a pass (no knob)."""
-    return display_kernels.program_defines(DEFAULT_CONFIG, 0.1, cpu=False)
+    return display_device.program_defines(DEFAULT_CONFIG, 0.1, cpu=False)
 
 
-def _reduction_defines(settings: KernelSettings) -> tuple:
-    """``level_fit.cl``'s and ``lbfgs.cl``'s defines: reductions in work-groups of 64 (no knob)."""
+def _level_fit_defines(settings: KernelSettings) -> tuple:
+    """``level_fit.cl``'s defines: reductions in work-groups of 64 (no knob)."""
+    return levels_device.program_defines()
+
+
+def _lbfgs_defines(settings: KernelSettings) -> tuple:
+    """``lbfgs.cl``'s defines: reductions in work-groups of 64 (no knob)."""
     return lbfgs_device.program_defines()
-
-
-def _no_defines(settings: KernelSettings) -> tuple:
-    return ()
 
 
 #: Every kernel file octcl builds; a new ``kernels/<name>.cl`` is one line here.
 KERNEL_FILES = (
     KernelFile("scanner", _scanner_defines, ("float32", "float64")),
-    KernelFile("depth_order", _no_defines, ("integer",)),
+    KernelFile("depth_order", _depth_order_defines, ("integer",)),
     KernelFile("field_operator", _field_operator_defines, ("float32", "float64")),
     KernelFile("display_loss", _display_fit_defines, ("float32", "float64")),
     KernelFile("adam", _display_fit_defines, ("float32", "float64")),
-    KernelFile("level_fit", _reduction_defines, ("float32", "float64")),
-    KernelFile("lbfgs", _reduction_defines, ("float32", "float64")),
+    KernelFile("level_fit", _level_fit_defines, ("float32", "float64")),
+    KernelFile("lbfgs", _lbfgs_defines, ("float32", "float64")),
 )
 
 #: Compile-time knobs (fields of KernelSettings) and the values compiled. Every
@@ -203,7 +216,9 @@ def enumerate_builds(kernel_dir: Path, knobs: dict, only: list[str] | None = Non
     change the file's code).
     """
     registered = {entry.name: entry for entry in KERNEL_FILES}
-    present = sorted(path.stem for path in kernel_dir.glob("*.cl"))
+    if not (kernel_dir / f"{PRELUDE}.cl").exists():
+        raise RegistryError(f"{kernel_dir / PRELUDE}.cl does not exist: every build starts with it")
+    present = sorted(path.stem for path in kernel_dir.glob("*.cl") if path.stem != PRELUDE)
     unregistered = [name for name in present if name not in registered]
     if unregistered:
         raise RegistryError(
@@ -217,16 +232,17 @@ def enumerate_builds(kernel_dir: Path, knobs: dict, only: list[str] | None = Non
     builds = []
     for name in wanted:
         entry = registered[name]
-        groups: dict[tuple, list[dict]] = {}
-        for combination in combinations:
-            groups.setdefault(tuple(entry.defines(KernelSettings(**combination))), []).append(combination)
-        for defines, members in groups.items():
-            varying = len(groups) > 1
-            constant = tuple((key, members[0][key]) for key in knobs
-                             if varying and all(member[key] == members[0][key] for member in members))
-            for precision in entry.precisions:
-                options = build_options(defines, double=precision == "float64")
-                builds.append(Build(name, precision, constant, tuple(options)))
+        for precision in entry.precisions:
+            double = precision == "float64"
+            groups: dict[tuple, list[dict]] = {}
+            for combination in combinations:
+                settings = KernelSettings(**combination, double=double)
+                groups.setdefault(tuple(entry.defines(settings)), []).append(combination)
+            for defines, members in groups.items():
+                varying = len(groups) > 1
+                constant = tuple((key, members[0][key]) for key in knobs
+                                 if varying and all(member[key] == members[0][key] for member in members))
+                builds.append(Build(name, precision, constant, tuple(build_options(defines, double))))
     return builds
 
 
@@ -532,8 +548,11 @@ def compile_build(build: Build, target: Target, tools: Tools, kernel_dir: Path, 
     With ``save_dir`` the compiler's output (AMD assembly, PTX) is kept there,
     named after the build and target, also when the build fails.
     """
-    source = kernel_dir / f"{build.file}.cl"
     with tempfile.TemporaryDirectory(prefix="kernel_resources_") as work:
+        # The source octcl builds: the prelude, then the file from its line 1 (so the compiler's line
+        # numbers are the file's), named as the file.
+        source = Path(work) / f"{build.file}.cl"
+        source.write_text(kernel_source(build.file, kernel_dir), encoding="utf-8")
         try:
             if target.vendor == "amd":
                 records = compile_amd(build, target, tools, source, Path(work))
@@ -545,7 +564,7 @@ def compile_build(build: Build, target: Target, tools: Tools, kernel_dir: Path, 
                     shutil.copy(output, save_dir / f"{build.stem()}-{target.name}{output.suffix}")
     if not records:
         raise CompileError(f"{build.label()} for {target.name}: no kernel found in the compiler's output")
-    common = {"file": _shown_path(source), "target": target.name, "arch": target.arch,
+    common = {"file": _shown_path(kernel_dir / f"{build.file}.cl"), "target": target.name, "arch": target.arch,
               "precision": build.precision, **{key: None for key in KNOBS}, **dict(build.knobs),
               "occupancy_max": target.occupancy_max, "occupancy_unit": target.occupancy_unit}
     return [{"kernel": r["kernel"], **common, **r} for r in records]

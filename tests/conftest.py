@@ -8,7 +8,7 @@ import pytest
 
 # Oclgrind reads its checks from the environment when its platform starts, at the first platform
 # query of the process: data races and OpenCL API misuse on, every report to a log the kernel tests
-# read (oclgrind_reports; tests/test_scanner_kernels.py and tests/test_field_kernels.py, "Under Oclgrind").
+# read (oclgrind_reports; tests/device/test_scanner.py and tests/stage1/test_operator_device.py, "Under Oclgrind").
 # Out-of-bounds accesses are always checked.
 OCLGRIND_LOG = Path(tempfile.mkdtemp(prefix="octcl-oclgrind-")) / "oclgrind.log"
 os.environ.update(OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", OCLGRIND_LOG=str(OCLGRIND_LOG))

@@ -72,7 +72,7 @@ def test_depth_order_is_numpy_classic_argsort():
     # Up to 16 depths the classic argsort is an insertion sort: ties in file order.
     np.testing.assert_array_equal(R.depth_order(np.array([5.0, 1.0, 5.0, 1.0, 3.0, 5.0])),
                                   [1, 3, 4, 0, 2, 5])
-    # Beyond, the introsort is not stable (tests/test_depth_order.py checks its order).
+    # Beyond, the introsort is not stable (tests/device/test_depth_order.py checks its order).
     z = np.random.default_rng(1).integers(0, 20, 5000).astype(float)
     order = R.depth_order(z)
     assert np.all(np.diff(z[order]) >= 0)

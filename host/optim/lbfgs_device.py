@@ -53,8 +53,7 @@ import math
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from ...device.programs import build
-from ...device.programs import REDUCTION_WORK_GROUP, reduction_work_group
+from ...device.programs import REDUCTION_WORK_GROUP, build, reduction_work_group
 from .lbfgs import ARMIJO, MAX_HALVINGS
 
 #: Reduction work-groups per compute unit, at least :data:`MIN_REDUCTION_GROUPS`.
@@ -77,8 +76,9 @@ _LOSS, _PAIR = 0, 1
 
 
 def program_defines(work_group_size: int = REDUCTION_WORK_GROUP) -> tuple:
-    """Compile-time constants of ``kernels/lbfgs.cl`` and ``kernels/level_fit.cl`` (their headers)."""
-    return (("WG_SIZE", work_group_size),)
+    """Compile-time constants of ``kernels/lbfgs.cl`` (its header): the reductions' work-group size and
+    :data:`PAIR_SUMS`."""
+    return (("REDUCTION_GROUP_SIZE", work_group_size), ("PAIR_SUMS", PAIR_SUMS))
 
 
 def pair_sum(slot: int, which: int) -> int:

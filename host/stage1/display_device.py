@@ -10,7 +10,7 @@ step writes its loss into a device array that :meth:`DisplayFitKernels.losses`
 reads when the caller asks (:func:`octcl.host.stage1.display.fit_field` does every
 :data:`LOSS_READ_EVERY` steps, for its progress). The NumPy twins are
 :func:`octcl.host.stage1.display_loss.display_loss` and :class:`octcl.host.optim.adam.Adam`;
-``tests/test_display_kernels.py`` compares them on every OpenCL
+``tests/stage1/test_display_device.py`` compares them on every OpenCL
 implementation present.
 """
 
@@ -18,11 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...device.programs import build
+from ...device.programs import REDUCTION_WORK_GROUP, build, reduction_work_group
 from ...render import DISPLAY_SLOPE
 from ..optim.adam import Adam
-from .display_loss import DISPLAY_GRADIENT_FLOOR, HIGH_PASS_WEIGHT, DisplayGoal
-from ...device.programs import REDUCTION_WORK_GROUP, reduction_work_group
+from .display_loss import DISPLAY_GRADIENT_FLOOR, HIGH_PASS_WEIGHT, LOG_FLOOR, DisplayGoal
 from .operator_device import FieldKernels
 
 #: Work-groups of a pass over the pixels on a CPU device: each work-item then sums 32 pixels of a 256×512 scan
@@ -31,6 +30,9 @@ from .operator_device import FieldKernels
 CPU_PASS_GROUPS = 64
 #: The device fit reads its losses back every this many steps (progress, and nothing else, needs them).
 LOSS_READ_EVERY = 25
+#: The slots of the fit's device array ``stats``, in order (``kernels/display_loss.cl``'s header): P_m,
+#: Σ|F|², Σ(|e| + e²), Σ|r|, Σ ∂L/∂D. The kernels get each slot's index as a define of its name.
+STAT_SLOTS = ("STAT_PEAK", "STAT_ENERGY", "STAT_ERROR", "STAT_RESIDUAL", "STAT_DISPLAY_GRADIENT")
 
 
 def program_defines(config, energy_weight: float, group_size: int = REDUCTION_WORK_GROUP, cpu: bool = True) -> tuple:
@@ -38,11 +40,12 @@ def program_defines(config, energy_weight: float, group_size: int = REDUCTION_WO
     pixels = config.a_scans * config.depth_pixels
     groups = min(CPU_PASS_GROUPS, -(-pixels // group_size)) if cpu else -(-pixels // (8 * group_size))
     beta1, beta2, epsilon = Adam.DEFAULTS
-    return (("NZ", config.depth_pixels), ("NX", config.a_scans), ("RWG_SIZE", group_size),
+    return (("NZ", config.depth_pixels), ("NX", config.a_scans), ("REDUCTION_GROUP_SIZE", group_size),
             ("PARTIALS", groups), ("DISPLAY_SLOPE", repr(float(DISPLAY_SLOPE))),
             ("FLOOR_VISIBLE", repr(float(DISPLAY_GRADIENT_FLOOR))), ("HIGH_PASS_WEIGHT", repr(float(HIGH_PASS_WEIGHT))),
-            ("ENERGY_WEIGHT", repr(float(energy_weight))), ("ADAM_BETA1", repr(beta1)), ("ADAM_BETA2", repr(beta2)),
-            ("ADAM_EPSILON", repr(epsilon)))
+            ("ENERGY_WEIGHT", repr(float(energy_weight))), ("LOG_FLOOR", repr(float(LOG_FLOOR))),
+            ("ADAM_BETA1", repr(beta1)), ("ADAM_BETA2", repr(beta2)), ("ADAM_EPSILON", repr(epsilon)),
+            *((name, slot) for slot, name in enumerate(STAT_SLOTS)))
 
 
 class DisplayFitKernels:
@@ -98,7 +101,7 @@ class DisplayFitKernels:
         self.partial_power, self.partial_index = zeros(self.partials, real), zeros(self.partials, np.int32)
         self.partial_energy, self.partial_error = zeros(self.partials, real), zeros(self.partials, real)
         self.partial_residual, self.partial_display_grad = zeros(self.partials, real), zeros(self.partials, real)
-        self.stats, self.brightest = zeros(8, real), zeros(1, np.int32)
+        self.stats, self.brightest = zeros(len(STAT_SLOTS), real), zeros(1, np.int32)
         self.loss_history = zeros(max(1, iterations), real)
         self.steps = 0
 
@@ -145,4 +148,4 @@ class DisplayFitKernels:
         return self.log_magnitude.get().T, self.phase.get().T
 
 
-__all__ = ["DisplayFitKernels", "LOSS_READ_EVERY", "program_defines"]
+__all__ = ["DisplayFitKernels", "LOSS_READ_EVERY", "STAT_SLOTS", "program_defines"]

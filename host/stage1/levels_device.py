@@ -9,16 +9,22 @@ accelerated projections' update (:func:`octcl.host.stage1.projections.retrieve_f
 and the hinge's residual r = A − P_𝓜(A) with ½·Σ|r|² (the loss of
 :func:`octcl.host.stage1.hinge.fit_levels`), summed in a fixed order into a device
 scalar by :class:`octcl.host.optim.lbfgs_device.VectorKernels`.
-``tests/test_level_kernels.py`` compares each kernel with NumPy in float64.
+``tests/stage1/test_levels_device.py`` compares each kernel with NumPy in float64.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ...device.programs import build
+from ...device.programs import REDUCTION_WORK_GROUP, build
 from .operator_device import FieldKernels
-from ..optim.lbfgs_device import VectorKernels, program_defines
+from ..optim.lbfgs_device import VectorKernels
+
+
+def program_defines(work_group_size: int = REDUCTION_WORK_GROUP) -> tuple:
+    """Compile-time constants of ``kernels/level_fit.cl`` (its header): the reductions' work-group size (the
+    hinge runs in :class:`VectorKernels`' work-groups, into its partials)."""
+    return (("REDUCTION_GROUP_SIZE", work_group_size),)
 
 
 class LevelKernels:
@@ -77,4 +83,4 @@ class LevelKernels:
         return vectors.finish_sum(vectors.partials, scalars, slot)
 
 
-__all__ = ["LevelKernels"]
+__all__ = ["LevelKernels", "program_defines"]

@@ -7,11 +7,13 @@ by A-scan, (Nx, Nz) in C order, so that each column is contiguous:
 :meth:`FieldKernels.to_device` and :meth:`FieldKernels.to_host` convert
 from and to the host's (Nz, Nx).
 
-The twin pads the columns to the first fast FFT length (525 for Nx = 512);
-the kernels' radix-2 FFTs pad to a power of two (1024), which changes only
-the circulant extension H⁺ inverts. ``tests/test_field_kernels.py`` compares
-each kernel with the twin at the kernels' padding on every OpenCL
-implementation present (PoCL, Intel's CPU runtime, Oclgrind).
+The kernels' radix-4/radix-2 FFTs pad the columns to a power of two
+(:func:`~octcl.host.stage1.operator.padded_column_count`: 1024 for
+Nx = 512), and so does the twin by default: the NumPy backend and the
+kernels invert the same circulant extension, and
+``tests/stage1/test_operator_device.py`` compares each kernel with the
+twin as the NumPy backend runs it, on every OpenCL implementation present
+(PoCL, Intel's CPU runtime, Oclgrind).
 
 The transforms are the project's own kernels rather than a library's.
 pyvkfft (VkFFT's OpenCL backend) publishes no wheel (``pip download pyvkfft
@@ -34,29 +36,16 @@ from ... import _reference as ref
 from ...device.programs import build
 from ...device.runtime import context_for, select_device
 from ...config import DEFAULT_CONFIG, ScannerConfig
-from .operator import REGULARISATION, FieldOperator, lateral_taps
+from .operator import REGULARISATION, FieldOperator, lateral_taps, padded_column_count
 
 #: Work-items of each FFT work-group (one radix-4 butterfly each per stage of the 256-point depth transforms).
 WORK_GROUP_SIZE = 64
-#: Work-items of the stage-1 kernels' reduction work-groups (a power of two; fewer where the device allows fewer).
-REDUCTION_WORK_GROUP = 64
-
-
-def reduction_work_group(device) -> int:
-    """The reductions' work-group size on ``device``: :data:`REDUCTION_WORK_GROUP`, or the largest power of
-    two the device allows below it."""
-    return 1 << (min(REDUCTION_WORK_GROUP, device.max_work_group_size).bit_length() - 1)
-
-
-def padded_columns(config: ScannerConfig, reach: int) -> int:
-    """P of the kernels: the first power of two ≥ Nx + 2R."""
-    return 1 << (config.a_scans + 2 * reach - 1).bit_length()
 
 
 def program_defines(config: ScannerConfig, reach: int, work_group_size: int = WORK_GROUP_SIZE) -> tuple:
     """Compile-time constants of ``kernels/field_operator.cl`` (its header)."""
     nz = config.depth_pixels
-    padded = padded_columns(config, reach)
+    padded = padded_column_count(config, reach)
     return (("NZ", nz), ("LOG2_NZ", nz.bit_length() - 1), ("NX", config.a_scans), ("REACH", reach),
             ("PADDED", padded), ("LOG2_PADDED", padded.bit_length() - 1), ("TWIDDLE_N", max(nz, padded)),
             ("WG_SIZE", work_group_size))
@@ -99,7 +88,7 @@ class FieldKernels:
         self.real = np.float64 if double else np.float32
         self.complex = np.complex128 if double else np.complex64
         reach = lateral_taps(config).size // 2
-        self.twin = FieldOperator(config, padded_columns=padded_columns(config, reach))
+        self.twin = FieldOperator(config)  # at P = padded_column_count, as the kernels
         defines = program_defines(config, reach, min(WORK_GROUP_SIZE, self.device.max_work_group_size))
         self.work_group_size = dict(defines)["WG_SIZE"]
         program = build(self.context, "field_operator", defines, double)
@@ -166,5 +155,4 @@ class FieldKernels:
         return out
 
 
-__all__ = ["FieldKernels", "REDUCTION_WORK_GROUP", "WORK_GROUP_SIZE", "padded_columns", "program_defines",
-           "reduction_work_group"]
+__all__ = ["FieldKernels", "WORK_GROUP_SIZE", "program_defines"]

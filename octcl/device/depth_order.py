@@ -35,6 +35,11 @@ SMALL_PARTITION = 15
 _LOW_63_BITS = np.int64(0x7FFF_FFFF_FFFF_FFFF)
 
 
+def program_defines() -> tuple[tuple[str, object], ...]:
+    """Compile-time constants of ``kernels/depth_order.cl`` (its header): the Python twin's SMALL_PARTITION."""
+    return (("SMALL_PARTITION", SMALL_PARTITION),)
+
+
 def sort_keys(values) -> np.ndarray:
     """int64 keys ordered exactly as NumPy orders the float64 ``values``.
 
@@ -157,7 +162,7 @@ def _introsort_kernel(context):
 
     from .programs import build
 
-    return cl.Kernel(build(context, "depth_order", (), False), "introsort_argsort")
+    return cl.Kernel(build(context, "depth_order", program_defines(), False), "introsort_argsort")
 
 
 def introsort_argsort_opencl(keys, device=None) -> np.ndarray:

@@ -16,7 +16,8 @@ defines from the host's own values (:func:`build_options`): a kernel file
 names them and defines none of them itself. Each op's ``program_defines``
 gives its file's defines; :data:`REDUCTION_WORK_GROUP` and
 :func:`reduction_work_group` are the reductions' work-group size every
-op shares.
+op shares (the define ``REDUCTION_GROUP_SIZE`` of the files that call the
+prelude's ``group_sum``).
 
 Programs are built once per (context, name, defines, precision)
 (:func:`build`, memoised); pyopencl keeps the compiled binaries in its
@@ -27,8 +28,10 @@ from __future__ import annotations
 
 import functools
 from importlib import resources
+from pathlib import Path
 
-from .runtime import OpenCLUnavailableError, describe, has_fp64, pyopencl_module, quiet_build
+from . import runtime
+from .runtime import OpenCLUnavailableError, describe, has_fp64, pyopencl_module
 
 #: The file every program starts with (module docstring).
 PRELUDE = "prelude"
@@ -42,14 +45,19 @@ def reduction_work_group(device) -> int:
     return 1 << (min(REDUCTION_WORK_GROUP, device.max_work_group_size).bit_length() - 1)
 
 
-def kernel_file(name: str) -> str:
-    """The text of ``kernels/<name>.cl`` alone."""
-    return resources.files("octcl.kernels").joinpath(f"{name}.cl").read_text(encoding="utf-8")
+def kernel_file(name: str, directory: Path | None = None) -> str:
+    """The text of ``kernels/<name>.cl`` alone, or of ``<directory>/<name>.cl``."""
+    folder = resources.files("octcl.kernels") if directory is None else directory
+    return folder.joinpath(f"{name}.cl").read_text(encoding="utf-8")
 
 
-def kernel_source(name: str) -> str:
-    """The source octcl builds for ``kernels/<name>.cl``: the prelude, then the file from its line 1."""
-    return f"{kernel_file(PRELUDE)}\n#line 1\n{kernel_file(name)}"
+def kernel_source(name: str, directory: Path | None = None) -> str:
+    """The source octcl builds for ``kernels/<name>.cl``: the prelude, then the file from its line 1.
+
+    ``directory`` takes both files from another folder, as ``scripts/kernel_resources.py``
+    does for its ``--kernel-dir``.
+    """
+    return f"{kernel_file(PRELUDE, directory)}\n#line 1\n{kernel_file(name, directory)}"
 
 
 def build_options(defines: tuple[tuple[str, object], ...], double: bool) -> list[str]:
@@ -74,7 +82,8 @@ def build(context, name: str, defines: tuple[tuple[str, object], ...], double: b
             f"{describe(device)} has no double precision (cl_khr_fp64); "
             "use float32 (the default) or another device")
     try:
-        return quiet_build(context, kernel_source(name), build_options(defines, double), device)
+        # Through the module, so that a test's stand-in for runtime.quiet_build serves the probe and octcl's builds alike.
+        return runtime.quiet_build(context, kernel_source(name), build_options(defines, double), device)
     except cl.RuntimeError as exc:
         raise OpenCLUnavailableError(
             f"kernels/{name}.cl failed to build on {describe(device)}:\n{exc}") from None

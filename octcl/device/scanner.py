@@ -47,7 +47,7 @@ WORK_GROUP_SIZE = 128
 #: Bytes of the work-item kernels' vectors: LANES reals (8 floats, 4 doubles), the
 #: 256 bits of an AVX2 register (``kernels/scanner.cl``, "Vector maths").
 VECTOR_BYTES = 32
-#: The exponent given to a zero amplitude (NO_AMPLITUDE in ``kernels/scanner.cl``).
+#: The exponent given to a zero amplitude (a define of ``kernels/scanner.cl``).
 NO_AMPLITUDE = -(1 << 20)
 
 
@@ -114,14 +114,16 @@ def program_defines(config: ScannerConfig, settings: KernelSettings,
     """Compile-time constants of ``kernels/scanner.cl`` for a scanner and its settings.
 
     NZ = Nz, GRID = 2·Nz (the oversampled spreading grid), their base-2
-    logarithms, SPREAD_WIDTH = W and WG_SIZE, the work-group size of the
-    work-group variant.
+    logarithms, SPREAD_WIDTH = W, WG_SIZE, the work-group size of the
+    work-group variant, LANES, the reals in :data:`VECTOR_BYTES` (A-scans per
+    work-item of the work-item variant), and :data:`NO_AMPLITUDE`.
     """
     nz = config.depth_pixels
     grid = 2 * nz
+    lanes = VECTOR_BYTES // np.dtype(np.float64 if settings.double else np.float32).itemsize
     return (("NZ", nz), ("GRID", grid), ("LOG2_NZ", nz.bit_length() - 1),
             ("LOG2_GRID", grid.bit_length() - 1), ("SPREAD_WIDTH", settings.spread_width),
-            ("WG_SIZE", work_group_size))
+            ("WG_SIZE", work_group_size), ("LANES", lanes), ("NO_AMPLITUDE", f"({NO_AMPLITUDE})"))
 
 
 def _is_cpu(device) -> bool:

@@ -24,7 +24,7 @@ from octcl.host.stage1.hinge import fit_levels
 from octcl.host.stage1.projections import retrieve_field
 from octcl.render import Rendering
 
-#: Oclgrind's scanner: 8 A-scans 6 µm apart, as tests/test_field_kernels.py's SMALL.
+#: Oclgrind's scanner: 8 A-scans 6 µm apart, as tests/stage1/test_operator_device.py's SMALL.
 SMALL = ScannerConfig(a_scans=8, xmax_um=48.0)
 #: Relative error asserted for each precision (float32 element-wise results sit near 1e−7, its sums
 #: over 262,144 terms near 1e−6).

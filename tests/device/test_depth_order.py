@@ -19,7 +19,7 @@ import pytest
 from octcl.device import depth_order as D
 from octcl import _reference as ref
 
-FIXTURE = Path(__file__).parent / "data" / "depth_order_numpy_1_24_4.npz"
+FIXTURE = Path(__file__).parents[1] / "data" / "depth_order_numpy_1_24_4.npz"
 
 
 def fixture_cases():

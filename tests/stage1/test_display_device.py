@@ -1,4 +1,4 @@
-"""The display fit's step as OpenCL kernels (host/display_kernels.py) against its NumPy twins.
+"""The display fit's step as OpenCL kernels (host/stage1/display_device.py) against its NumPy twins.
 
 The twins are :func:`octcl.host.stage1.display_loss.display_loss` (itself checked against
 finite differences and torch's autograd in tests/test_field.py) and
@@ -14,7 +14,8 @@ from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
 
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.host.optim.adam import Adam
-from octcl.host.stage1.display_device import DisplayFitKernels
+from octcl.host.stage1.backend import OpenCLBackend
+from octcl.host.stage1.display_device import STAT_SLOTS, DisplayFitKernels
 from octcl.host.stage1.display import fit_field
 from octcl.host.stage1.display_loss import DisplayGoal, display_loss
 from octcl.host.stage1.levels import target_magnitude
@@ -26,6 +27,8 @@ SMALL = ScannerConfig(a_scans=8, xmax_um=48.0)
 CASES = [(name, double) for name in ("pocl", "intel", "oclgrind") for double in (False, True)]
 #: Largest |G_kernels − G_twin| relative to max|G_twin| (float32 measured 4e−6 on Uniform A; float64 4e−14).
 GRADIENT_TOLERANCE = {False: 2e-5, True: 1e-12}
+#: Where the fit's device array ``stats`` holds P_m.
+PEAK_SLOT = STAT_SLOTS.index("STAT_PEAK")
 
 
 @pytest.fixture(scope="module", params=CASES, ids=[f"{n}-{'float64' if d else 'float32'}" for n, d in CASES])
@@ -68,7 +71,7 @@ def test_loss_and_gradient_match_the_twin(case, oclgrind_clean):
     fit.gradient()
     field = np.exp(log_magnitude.astype(np.float64)) * np.exp(1j * phase.astype(np.float64))
     loss, gradient = display_loss(field, FieldOperator(kernels.config), DisplayGoal.of(levels, dtype=np.float64))
-    peak = float(fit.stats.get()[0])
+    peak = float(fit.stats.get()[PEAK_SLOT])
     # The kernels leave G_F's energy term to the Adam step: added here as kernels/adam.cl adds it.
     ours = kernels.to_host(fit.field_grad) + 2 * goal.energy_weight / (field.size * peak) * field
     assert fit.loss_history.get()[0] == pytest.approx(loss, rel=GRADIENT_TOLERANCE[kernels.real == np.float64])
@@ -95,7 +98,9 @@ def test_steps_follow_the_twins_adam(case, oclgrind_clean):
         losses.append(loss)
     ours_rho, ours_theta = fit.parameters()
     # Adam's first steps move each parameter by about lr whatever its gradient's size, so float32's
-    # rounding of a near-zero gradient can flip a step: compared where the gradient is not tiny.
+    # rounding of a near-zero gradient can flip a step at a few pixels (up to 4 of 131,072 beyond 2e−3
+    # measured on PoCL and Intel, by up to 0.03): the medians are compared, which those few leave
+    # alone (3e−7 measured in float32, under 1e−15 in float64).
     tolerance = 1e-9 if double else 2e-3
     assert np.median(np.abs(ours_rho - rho)) <= tolerance and np.median(np.abs(ours_theta - theta)) <= tolerance
     np.testing.assert_allclose(fit.losses(), losses, rtol=1e-12 if double else 1e-4)
@@ -120,7 +125,7 @@ def test_fit_field_on_the_device_fits_as_the_host_does(official_data):
     levels = target_scan(read_target(official_data / "Scan_Exp1_Uniform_A.png"))
     kernels = FieldKernels(device=implementation_device("intel"))
     seen = []
-    device = fit_field(levels, iterations=40, time_budget_s=None, threads=1, kernels=kernels,
+    device = fit_field(levels, iterations=40, time_budget_s=None, threads=1, backend=OpenCLBackend(kernels=kernels),
                        progress=lambda taken, planned, loss: seen.append((taken, loss)))
     host = fit_field(levels, iterations=40, time_budget_s=None, threads=1)
     assert device.iterations == host.iterations == 40
@@ -144,7 +149,7 @@ def test_gradient_matches_finite_differences_of_the_kernels_own_loss(name, offic
     def loss_and_gradient(values):
         fit = DisplayFitKernels(kernels, goal, np.log(np.abs(values)), np.angle(values), iterations=1)
         fit.gradient()
-        peak = float(fit.stats.get()[0])
+        peak = float(fit.stats.get()[PEAK_SLOT])
         return float(fit.loss_history.get()[0]), \
             kernels.to_host(fit.field_grad) + 2 * goal.energy_weight / (values.size * peak) * values
 

@@ -9,13 +9,15 @@ from pathlib import Path
 
 import pytest
 
-from octcl.device.programs import build_options
-from octcl.device.scanner import WORK_GROUP_SIZE, KernelSettings, program_defines
 from octcl.config import DEFAULT_CONFIG
-from octcl.host.stage1 import operator_device as field_kernels
-from octcl.host.stage1.operator import FieldOperator
+from octcl.device import depth_order
+from octcl.device.programs import PRELUDE, build_options
+from octcl.device.scanner import WORK_GROUP_SIZE, KernelSettings, program_defines
+from octcl.host.optim import lbfgs_device
+from octcl.host.stage1 import display_device, levels_device, operator_device as field_kernels
+from octcl.host.stage1.operator import FieldOperator, padded_column_count
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "scripts" / "kernel_resources.py"
 #: The field operator's lateral reach R at the default scanner, as FieldKernels takes it.
 FIELD_REACH = (FieldOperator(DEFAULT_CONFIG).taps.size - 1) // 2
@@ -27,6 +29,13 @@ _spec.loader.exec_module(kr)
 
 def run_script(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=REPO)
+
+
+def kernel_dir_with(tmp_path: Path, name: str, source: str) -> Path:
+    """``tmp_path`` as a kernel folder: octcl's prelude and ``<name>.cl`` holding ``source``."""
+    (tmp_path / f"{PRELUDE}.cl").write_text((REPO / "kernels" / f"{PRELUDE}.cl").read_text())
+    (tmp_path / f"{name}.cl").write_text(source)
+    return tmp_path
 
 
 @pytest.fixture(scope="module")
@@ -43,28 +52,42 @@ def test_builds_are_octcls_builds_for_every_knob_and_precision():
     builds = kr.enumerate_builds(REPO / "kernels", {"spread_width": (8, 16, 8)})
     scanner = {(b.precision, b.knobs): b.options for b in builds if b.file == "scanner"}
     for width in (8, 16):
-        defines = program_defines(DEFAULT_CONFIG, KernelSettings(spread_width=width))
         for precision in ("float32", "float64"):
-            assert scanner[(precision, (("spread_width", width),))] == tuple(
-                build_options(defines, double=precision == "float64"))
+            double = precision == "float64"
+            defines = program_defines(DEFAULT_CONFIG, KernelSettings(spread_width=width, double=double))
+            assert scanner[(precision, (("spread_width", width),))] == tuple(build_options(defines, double))
     assert len(scanner) == 4  # the repeated 8 is built once
     # The depth order does not depend on the knobs: one integer build, no knob reported.
-    assert [(b.precision, b.knobs, b.options) for b in builds if b.file == "depth_order"] == [("integer", (), ())]
-    # Nor does the field operator: FieldKernels' defines at the default scanner, float32 and float64.
-    defines = field_kernels.program_defines(DEFAULT_CONFIG, FIELD_REACH)
-    assert [(b.precision, b.knobs, b.options) for b in builds if b.file == "field_operator"] == [
-        (precision, (), tuple(build_options(defines, double=precision == "float64")))
-        for precision in ("float32", "float64")]
+    assert [(b.precision, b.knobs, b.options) for b in builds if b.file == "depth_order"] == [
+        ("integer", (), tuple(build_options(depth_order.program_defines(), double=False)))]
+    # Nor do the stage-1 files: their ops' defines at the default scanner, float32 and float64.
+    no_knob = {"field_operator": field_kernels.program_defines(DEFAULT_CONFIG, FIELD_REACH),
+               "display_loss": display_device.program_defines(DEFAULT_CONFIG, 0.1, cpu=False),
+               "adam": display_device.program_defines(DEFAULT_CONFIG, 0.1, cpu=False),
+               "level_fit": levels_device.program_defines(),
+               "lbfgs": lbfgs_device.program_defines()}
+    for name, defines in no_knob.items():
+        assert [(b.precision, b.knobs, b.options) for b in builds if b.file == name] == [
+            (precision, (), tuple(build_options(defines, double=precision == "float64")))
+            for precision in ("float32", "float64")], name
+    # The prelude is in every build, not a build of its own.
+    assert {b.file for b in builds} == {path.stem for path in (REPO / "kernels").glob("*.cl")} - {PRELUDE}
 
 
 def test_an_unregistered_kernel_file_fails_the_run(tmp_path):
-    (tmp_path / "depth_order.cl").write_text((REPO / "kernels" / "depth_order.cl").read_text())
+    kernel_dir_with(tmp_path, "depth_order", (REPO / "kernels" / "depth_order.cl").read_text())
     (tmp_path / "scanner_tiles.cl").write_text("__kernel void k(__global int *a) { a[0] = 1; }\n")
     with pytest.raises(kr.RegistryError, match="scanner_tiles.cl: no build registered"):
         kr.enumerate_builds(tmp_path, kr.KNOBS)
     result = run_script("--kernel-dir", str(tmp_path))
     assert result.returncode == 2
     assert "KERNEL_FILES" in result.stderr
+
+
+def test_a_kernel_folder_without_the_prelude_fails_the_run(tmp_path):
+    (tmp_path / "depth_order.cl").write_text((REPO / "kernels" / "depth_order.cl").read_text())
+    with pytest.raises(kr.RegistryError, match="prelude.cl does not exist"):
+        kr.enumerate_builds(tmp_path, kr.KNOBS)
 
 
 def test_only_libclcs_own_triple_warning_is_ignored():
@@ -122,7 +145,7 @@ def test_every_kernel_compiles_and_reports_its_private_arrays(compilers):
                 assert record["block_size"] == WORK_GROUP_SIZE
         # The field operator's transforms ping-pong between two local arrays of Nz (depth) or P
         # (columns) complex values: nothing private, blocks of its required work-group size.
-        padded = field_kernels.padded_columns(DEFAULT_CONFIG, FIELD_REACH)
+        padded = padded_column_count(DEFAULT_CONFIG, FIELD_REACH)
         for kernel, length in (("depth_convolve", DEFAULT_CONFIG.depth_pixels),
                                ("depth_fft", DEFAULT_CONFIG.depth_pixels), ("lateral_filter", padded)):
             record = found[(kernel, "sm_80", precision, None)]
@@ -133,7 +156,9 @@ def test_every_kernel_compiles_and_reports_its_private_arrays(compilers):
 
 
 BROKEN_KERNELS = {
-    "syntax": ("__kernel void introsort_argsort(__global long *key) { key[0] = 1 }\n", "error: expected ';'"),
+    # The message names the line of the file itself, not of the prelude before it.
+    "syntax": ("__kernel void introsort_argsort(__global long *key) { key[0] = 1 }\n",
+               "depth_order.cl:1:65: error: expected ';'"),
     "undefined function": ("long helper(long x);\n"
                            "__kernel void introsort_argsort(__global long *key) { key[0] = helper(key[1]); }\n",
                            "helper"),
@@ -144,7 +169,7 @@ BROKEN_KERNELS = {
 @pytest.mark.parametrize("problem", sorted(BROKEN_KERNELS))
 def test_a_broken_kernel_fails_the_run_with_the_compilers_message(compilers, tmp_path, target, problem):
     source, message = BROKEN_KERNELS[problem]
-    (tmp_path / "depth_order.cl").write_text(source)
+    kernel_dir_with(tmp_path, "depth_order", source)
     result = run_script("--kernel-dir", str(tmp_path), "--targets", target)
     assert result.returncode == 1
     assert f"FAILED kernels/depth_order.cl integer for {target}" in result.stderr
@@ -158,7 +183,7 @@ def test_without_ptxas_the_ptx_gives_private_bytes_and_catches_undefined_functio
     assert record["private_bytes"] >= 3 * 32 * 4
     assert record["registers"] is None and record["occupancy"] is None
     assert "no ptxas" in record["reported_by"]
-    (tmp_path / "depth_order.cl").write_text(BROKEN_KERNELS["undefined function"][0])
+    kernel_dir_with(tmp_path, "depth_order", BROKEN_KERNELS["undefined function"][0])
     result = run_script("--kernel-dir", str(tmp_path), "--targets", "sm_80", "--ptxas", "")
     assert result.returncode == 1
     assert "undefined functions helper" in result.stderr
