@@ -309,7 +309,7 @@ def _build_network(arrays: dict[str, np.ndarray]):
             self.register_buffer("shift", torch.tensor(_INPUT_SHIFT).view(1, 3, 1, 1))
             self.register_buffer("scale", torch.tensor(_INPUT_SCALE).view(1, 3, 1, 1))
 
-        def _normalised_taps(self, grey):
+        def normalised_taps(self, grey):
             x = ((grey * 2 - 1).expand(-1, 3, -1, -1) - self.shift) / self.scale
             taps = []
             for layer, conv in enumerate(self.convs):
@@ -331,7 +331,7 @@ def _build_network(arrays: dict[str, np.ndarray]):
             elif ref.dim() != 4 or ref.shape[1] != 1:
                 raise ValueError(f"expected (H, W) or (N, 1, H, W) images, got {tuple(ref.shape)}")
             dtype = self.shift.dtype
-            distance = self.distance(self._normalised_taps(ref.to(dtype)), self._normalised_taps(pred.to(dtype)))
+            distance = self.distance(self.normalised_taps(ref.to(dtype)), self.normalised_taps(pred.to(dtype)))
             return distance[0] if single else distance
 
         def distance(self, taps_ref, taps_pred):

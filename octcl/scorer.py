@@ -68,7 +68,7 @@ def _grey_as_official(pixels: np.ndarray) -> np.ndarray:
     return (red * _LUMINANCE[0] + green * _LUMINANCE[1]) + blue * _LUMINANCE[2]
 
 
-def _grey_of_pixels(pixels: np.ndarray, source: str = "image") -> np.ndarray:
+def grey_of_pixels(pixels: np.ndarray, source: str = "image") -> np.ndarray:
     """:func:`_grey_as_official` of a PNG's stored (H, W, C) pixels (:func:`octcl._io.read_png_pixels`).
 
     Raises :class:`octcl._io.ImageFormatError` starting with ``source`` for
@@ -91,7 +91,7 @@ def _read_map_for_metrics(path) -> np.ndarray:
     """
     from ._io import read_png_pixels
 
-    return _grey_of_pixels(read_png_pixels(path), str(path))
+    return grey_of_pixels(read_png_pixels(path), str(path))
 
 
 @functools.lru_cache(maxsize=1)
@@ -104,7 +104,7 @@ def _grey_of_level() -> np.ndarray:
     return grey
 
 
-def _levels_for_metrics(levels: np.ndarray) -> np.ndarray:
+def levels_for_metrics(levels: np.ndarray) -> np.ndarray:
     """What :func:`_read_map_for_metrics` returns for these levels saved as grey RGBA.
 
     The reading is elementwise, so a 256-entry table gives it bit for bit
@@ -121,7 +121,7 @@ def _msssim_input(grey: np.ndarray) -> np.ndarray:
     return (grey * 255).astype(np.uint8)
 
 
-def _score_grey_maps(ref_maps: dict, pred_maps: dict) -> dict:
+def score_grey_maps(ref_maps: dict, pred_maps: dict) -> dict:
     """The eight components from {map name: float grey image as the metric reads it}."""
     from ._lpips import lpips_distance
     from ._msssim import msssim_exact
@@ -150,13 +150,13 @@ def score_maps(ref_maps: dict, pred_maps: dict) -> dict:
     dict
         ``msssim_<map>`` and ``one_minus_lpips_<map>`` for each map.
     """
-    return _score_grey_maps(
-        {name: _levels_for_metrics(ref_maps[name]) for name in MAP_NAMES},
-        {name: _levels_for_metrics(pred_maps[name]) for name in MAP_NAMES},
+    return score_grey_maps(
+        {name: levels_for_metrics(ref_maps[name]) for name in MAP_NAMES},
+        {name: levels_for_metrics(pred_maps[name]) for name in MAP_NAMES},
     )
 
 
-def _maps_for_metrics(struct: np.ndarray, scan: np.ndarray) -> dict:
+def maps_for_metrics(struct: np.ndarray, scan: np.ndarray) -> dict:
     """The four maps of a scan, each as the official metric reads it.
 
     ``struct`` is the scan PNG as the metric reads it (:func:`_read_map_for_metrics`),
@@ -166,7 +166,7 @@ def _maps_for_metrics(struct: np.ndarray, scan: np.ndarray) -> dict:
     from .maps import map_levels
 
     derived = map_levels(scan)
-    return {"Struct": struct, **{name: _levels_for_metrics(derived[name]) for name in ("OAC", "SC", "RSC")}}
+    return {"Struct": struct, **{name: levels_for_metrics(derived[name]) for name in ("OAC", "SC", "RSC")}}
 
 
 def _scan_maps_for_metrics(path) -> dict:
@@ -174,7 +174,7 @@ def _scan_maps_for_metrics(path) -> dict:
     from ._io import read_scan_pixels, rgb_of_pixels, scan_of_rgb
 
     pixels = read_scan_pixels(path, shape=SCAN_SHAPE)
-    return _maps_for_metrics(_grey_of_pixels(pixels, str(path)), scan_of_rgb(rgb_of_pixels(pixels)))
+    return maps_for_metrics(grey_of_pixels(pixels, str(path)), scan_of_rgb(rgb_of_pixels(pixels)))
 
 
 def score(ref, pred) -> dict:
@@ -186,7 +186,7 @@ def score(ref, pred) -> dict:
         The eight components ``msssim_<map>``, ``one_minus_lpips_<map>`` for
         map in Struct, OAC, SC, RSC, and ``mean``, their mean.
     """
-    components = _score_grey_maps(_scan_maps_for_metrics(ref), _scan_maps_for_metrics(pred))
+    components = score_grey_maps(_scan_maps_for_metrics(ref), _scan_maps_for_metrics(pred))
     components["mean"] = float(np.mean([components[name] for name in COMPONENTS]))
     return components
 

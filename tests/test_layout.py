@@ -141,3 +141,23 @@ def test_no_private_name_imported_across_modules(folder):
                              if alias.name.startswith("_") and not alias.name.startswith("__")
                              and not (REPOSITORY / "octcl" / f"{alias.name}.py").exists()]
     assert crossing == []
+
+
+def test_no_private_name_read_through_an_imported_module():
+    """``module._name`` where ``module`` is one of octcl's, imported by name: the same rule, by attribute."""
+    crossing = []
+    for folder in SOURCES:
+        for path in sorted((REPOSITORY / folder).rglob("*.py")):
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            modules_here = set()
+            for node in ast.walk(tree):
+                if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("octcl")):
+                    modules_here |= {alias.asname or alias.name for alias in node.names}
+                elif isinstance(node, ast.Import):
+                    modules_here |= {alias.asname or alias.name for alias in node.names if alias.name.startswith("octcl")}
+            crossing += [f"{path.relative_to(REPOSITORY).as_posix()}:{node.lineno} {node.value.id}.{node.attr}"
+                         for node in ast.walk(tree)
+                         if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                         and node.value.id in modules_here and node.attr.startswith("_")
+                         and not node.attr.startswith("__")]
+    assert crossing == []

@@ -11,7 +11,7 @@ from octcl._io import read_png_rgb, write_grey_png
 from octcl.scorer import (
     COMPONENTS,
     MAP_NAMES,
-    _levels_for_metrics,
+    levels_for_metrics,
     _msssim_input,
     _prediction,
     _read_map_for_metrics,
@@ -49,7 +49,7 @@ def test_levels_for_metrics_equals_reading_the_png(tmp_path):
     """All 256 levels of an opaque grey RGBA PNG: in-memory and file readings identical."""
     levels = _all_levels_image()
     write_grey_png(tmp_path / "levels.png", levels)
-    np.testing.assert_array_equal(_levels_for_metrics(levels), _read_map_for_metrics(tmp_path / "levels.png"))
+    np.testing.assert_array_equal(levels_for_metrics(levels), _read_map_for_metrics(tmp_path / "levels.png"))
 
 
 @pytest.mark.parametrize("kind", ["grey RGBA", "RGB", "translucent RGBA", "grey"])
@@ -78,7 +78,7 @@ def test_reading_is_skimage_as_gray_up_to_the_last_bit(tmp_path, kind):
 def test_msssim_input_truncation():
     """33 levels read just below v/255 and become v − 1 in MS-SSIM's input; no other change."""
     levels = np.arange(256, dtype=np.uint8)[None]
-    truncated = _msssim_input(_levels_for_metrics(levels))[0].astype(int)
+    truncated = _msssim_input(levels_for_metrics(levels))[0].astype(int)
     assert set(np.unique(levels[0] - truncated)) == {0, 1}
     assert np.count_nonzero(truncated != levels[0]) == 33
     assert truncated[25] == 24 and truncated[255] == 255 and truncated[0] == 0
@@ -164,7 +164,7 @@ def _save_levels(png, npy):
 def test_npy_scan_maps_are_those_of_its_grey_png(official_data, tmp_path, scan):
     """The four maps as the metric reads them, from a .npy of levels L and the scanner's PNG of L: equal, bit for bit.
 
-    Struct is the metric's reading of the grey RGBA PNG (:func:`_levels_for_metrics`), not L/255: 33 levels differ.
+    Struct is the metric's reading of the grey RGBA PNG (:func:`levels_for_metrics`), not L/255: 33 levels differ.
     """
     if scan == "levels":
         levels = _all_levels_image()
@@ -179,7 +179,7 @@ def test_npy_scan_maps_are_those_of_its_grey_png(official_data, tmp_path, scan):
     for name in MAP_NAMES:
         assert from_npy[name].dtype == np.float64 and from_npy[name].shape == (256, 512)
         np.testing.assert_array_equal(from_npy[name], from_png[name], err_msg=name)
-    np.testing.assert_array_equal(from_npy["Struct"], _levels_for_metrics(levels))
+    np.testing.assert_array_equal(from_npy["Struct"], levels_for_metrics(levels))
     assert not np.array_equal(_msssim_input(from_npy["Struct"]), levels)
 
 

@@ -139,8 +139,8 @@ def target_struct_for_metrics(target: np.ndarray) -> np.ndarray:
     target = np.asarray(target)
     pixels = _pixels(target)
     if target.ndim == 2:  # an opaque grey RGBA file
-        return scorer._levels_for_metrics(target)
-    return scorer._grey_of_pixels(pixels)
+        return scorer.levels_for_metrics(target)
+    return scorer.grey_of_pixels(pixels)
 
 
 __all__ = ["PIXEL_CHANNELS", "check_target", "decode_target", "read_target", "target_scan", "target_struct_for_metrics"]

@@ -148,7 +148,7 @@ class DisplayLoss:
 
     def _taps(self, image: torch.Tensor) -> list[torch.Tensor]:
         """LPIPS's unit-normalised AlexNet activations of a grey (H, W) image in [0, 1]."""
-        return self.network._normalised_taps(image[None, None].float())
+        return self.network.normalised_taps(image[None, None].float())
 
     def _lpips(self, name: str, image: torch.Tensor) -> torch.Tensor:
         """LPIPS(target map, image) = Σ_l mean_hw w_l·(f̂_l(T) − f̂_l(P))², target features cached."""
@@ -314,7 +314,7 @@ class ExactScore:
         if scan.shape != scorer.SCAN_SHAPE:
             raise ValueError(f"the target is {scan.shape[0]}x{scan.shape[1]}, the scorer takes "
                              f"{scorer.SCAN_SHAPE[0]}x{scorer.SCAN_SHAPE[1]}")
-        self.target_maps = scorer._maps_for_metrics(target_struct_for_metrics(target), scan)
+        self.target_maps = scorer.maps_for_metrics(target_struct_for_metrics(target), scan)
 
     @staticmethod
     def maps_of_levels(levels: np.ndarray) -> dict[str, np.ndarray]:
@@ -323,9 +323,9 @@ class ExactScore:
 
     def __call__(self, levels: np.ndarray) -> dict[str, float]:
         """``msssim_<map>`` and ``one_minus_lpips_<map>`` for the four maps, and ``mean``."""
-        predicted = {name: scorer._levels_for_metrics(image)
+        predicted = {name: scorer.levels_for_metrics(image)
                      for name, image in self.maps_of_levels(levels).items()}
-        components = scorer._score_grey_maps(self.target_maps, predicted)
+        components = scorer.score_grey_maps(self.target_maps, predicted)
         components["mean"] = float(np.mean([components[name] for name in scorer.COMPONENTS]))
         return components
 
