@@ -27,7 +27,7 @@ def pytest_terminal_summary(terminalreporter):
     that a CI log shows which implementations the kernels were proven on."""
     import re
 
-    counts = {name: {} for name in IMPLEMENTATION_SOURCES}
+    counts = {name: {} for name in (*IMPLEMENTATION_SOURCES, *gpu_implementations())}
     for outcome in ("passed", "failed", "skipped"):
         for report in terminalreporter.stats.get(outcome, []):
             for name, tally in counts.items():
@@ -54,18 +54,45 @@ def oclgrind_reports(text: str) -> list[str]:
     return [report for report in reports if [line.strip() for line in report.splitlines()] != vendor_query]
 
 
-def implementation_device(name: str):
+#: Where a GPU implementation's skip reason points.
+GPU_SOURCE = "the GPU vendor's OpenCL driver (octcl devices lists what it finds)"
+#: Variable naming more implementations for the kernel tests, comma-separated (``OCTCL_TEST_IMPLEMENTATIONS=nvidia``
+#: on a machine whose GPU the listing below would miss); GPUs that are present are added without it.
+TEST_IMPLEMENTATIONS_ENV = "OCTCL_TEST_IMPLEMENTATIONS"
+
+
+def gpu_implementations() -> tuple[str, ...]:
+    """The implementations of the GPUs present (``nvidia``, ``amd``, ``intel-gpu``, ``apple``, ...), and those
+    :data:`TEST_IMPLEMENTATIONS_ENV` names: the kernel tests run on each, beside the CPUs'."""
+    from octcl.device.runtime import SIMULATORS, implementation, list_devices, pyopencl_module
+
+    gpu = pyopencl_module().device_type.GPU
+    found = [implementation(device) for _, device in list_devices()
+             if device.type & gpu and implementation(device) not in SIMULATORS]
+    named = [name.strip() for name in os.environ.get(TEST_IMPLEMENTATIONS_ENV, "").split(",") if name.strip()]
+    return tuple(dict.fromkeys(found + named))
+
+
+#: The implementations the kernel tests compare with the float64 twins: the CPU runtimes octcl installs and
+#: every GPU present. Oclgrind, the simulator, runs its own (smaller) cases.
+KERNEL_IMPLEMENTATIONS = ("pocl", "intel", *gpu_implementations())
+
+
+def implementation_device(name: str, double: bool = False):
     """The first device of the OpenCL implementation ``name`` that builds (PyPI's PoCL and the
     distribution's may both be there, and only one build on a given CPU); skips, with the reason,
-    where none is installed or none can build on this machine."""
-    from octcl.device.runtime import implementation, list_devices, probe
+    where none is installed, none can build on this machine, or ``double`` is asked of a device
+    without float64 (Apple's GPUs)."""
+    from octcl.device.runtime import has_fp64, implementation, list_devices, probe
 
     devices = [device for _, device in list_devices() if implementation(device) == name]
     if not devices:
-        pytest.skip(f"no {name} device found: {IMPLEMENTATION_SOURCES[name]}")
+        pytest.skip(f"no {name} device found: {IMPLEMENTATION_SOURCES.get(name, GPU_SOURCE)}")
     building = [device for device in devices if probe(device).builds]
     if not building:
         pytest.skip(f"{name} cannot build on this machine: {probe(devices[0]).error}")
+    if double and not has_fp64(building[0]):
+        pytest.skip(f"{name} has no float64 (cl_khr_fp64)")
     return building[0]
 
 #: Factor by which ``--fuzz-long`` alone multiplies the fuzz tests' example budgets.

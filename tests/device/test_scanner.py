@@ -17,7 +17,7 @@ import hashlib
 
 import numpy as np
 import pytest
-from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
+from conftest import KERNEL_IMPLEMENTATIONS, OCLGRIND_LOG, implementation_device, oclgrind_reports
 
 from octcl import _reference as ref
 from octcl.config import ScannerConfig
@@ -29,8 +29,6 @@ from octcl.device.scanner import VARIANTS, KernelSettings, ScannerKernels
 NARROW = ScannerConfig(a_scans=64, xmax_um=384.0)
 
 
-#: The CPU OpenCL implementations the narrow-scanner tests run on.
-CPU_IMPLEMENTATIONS = ("pocl", "intel")
 
 
 @pytest.fixture(scope="module", params=VARIANTS)
@@ -38,19 +36,26 @@ def variant(request):
     return request.param
 
 
-@pytest.fixture(scope="module", params=CPU_IMPLEMENTATIONS)
-def cpu_device(request):
-    return implementation_device(request.param)
+@pytest.fixture(scope="module", params=KERNEL_IMPLEMENTATIONS)
+def implementation_name(request):
+    """The narrow-scanner tests run on the CPU runtimes and every GPU present (conftest.KERNEL_IMPLEMENTATIONS)."""
+    return request.param
 
 
 @pytest.fixture(scope="module")
-def kernels32(cpu_device, variant):
-    return ScannerKernels(NARROW, KernelSettings(variant=variant), device=cpu_device)
+def device_under_test(implementation_name):
+    return implementation_device(implementation_name)
 
 
 @pytest.fixture(scope="module")
-def kernels64(cpu_device, variant):
-    return ScannerKernels(NARROW, KernelSettings(double=True, variant=variant), device=cpu_device)
+def kernels32(device_under_test, variant):
+    return ScannerKernels(NARROW, KernelSettings(variant=variant), device=device_under_test)
+
+
+@pytest.fixture(scope="module")
+def kernels64(implementation_name, variant):
+    device = implementation_device(implementation_name, double=True)
+    return ScannerKernels(NARROW, KernelSettings(double=True, variant=variant), device=device)
 
 
 _REFERENCES = {}
@@ -104,16 +109,16 @@ def test_random_scene_matches_reference(precision, tolerance, kernels32, kernels
 
 
 @pytest.mark.parametrize("double, tolerance", [(False, 1e-5), (True, 1e-7)])
-def test_the_widest_spreading_builds_and_matches_the_reference(double, tolerance, cpu_device):
+def test_the_widest_spreading_builds_and_matches_the_reference(double, tolerance, device_under_test):
     """W = 16: the work-item kernels compute 16 weights in 256-bit pieces (8 floats, 4 doubles),
     the widest that PoCL's LLVM compiles the vector builtins for without AVX-512."""
     kernels = ScannerKernels(NARROW, KernelSettings(spread_width=16, double=double, variant="work-item"),
-                             device=cpu_device)
+                             device=device_under_test)
     compare(kernels, random_phantom(2000, np.random.default_rng(4)), tolerance)
 
 
 @pytest.mark.parametrize("double, tolerance", [(False, 1e-5), (True, 1e-7)])
-def test_bins_that_lanes_do_not_divide(double, tolerance, cpu_device):
+def test_bins_that_lanes_do_not_divide(double, tolerance, device_under_test):
     """A 13 µm beam makes bins of P = 10 A-scans, and 64 A-scans end in a bin of 4: the work-item
     kernels' last lanes of a bin (10 = 8 + 2 floats, 4 + 4 + 2 doubles) and of the B-scan stay idle,
     and forward and adjoint still agree with the reference and with the work-group variant."""
@@ -121,7 +126,7 @@ def test_bins_that_lanes_do_not_divide(double, tolerance, cpu_device):
     phantom = random_phantom(2000, np.random.default_rng(5), half_width_um=190.0)
     gradients = []
     for variant in VARIANTS:
-        kernels = ScannerKernels(config, KernelSettings(double=double, variant=variant), device=cpu_device)
+        kernels = ScannerKernels(config, KernelSettings(double=double, variant=variant), device=device_under_test)
         assert kernels.ascans_per_bin == 10
         gradients.append(compare(kernels, phantom, tolerance)[2:])
     for item, group in zip(*gradients):
@@ -384,12 +389,12 @@ def test_gradients_of_a_scaled_phantom_match_finite_differences(kernels32):
 
 
 # ------------------------------------------------------------------ variants
-def test_variants_agree_and_repeat_bit_for_bit(cpu_device):
+def test_variants_agree_and_repeat_bit_for_bit(device_under_test):
     """Both variants give the same A-scans and gradients to float32 rounding; each repeats exactly."""
     phantom = random_phantom(3000, np.random.default_rng(16), energy=(1.0, 40.0))
     results = {}
     for variant in VARIANTS:
-        kernels = ScannerKernels(NARROW, KernelSettings(variant=variant), device=cpu_device)
+        kernels = ScannerKernels(NARROW, KernelSettings(variant=variant), device=device_under_test)
         runs = []
         for _ in range(2):
             rendering = kernel_rendering(kernels, phantom, for_adjoint=True)
@@ -403,18 +408,25 @@ def test_variants_agree_and_repeat_bit_for_bit(cpu_device):
         assert np.abs(item - group).max() <= 1e-4 * np.abs(item).max()
 
 
-def test_variant_follows_the_device_type(kernels32):
-    """'auto' takes the work-item variant on a CPU device; a GPU would get the work-group one."""
+def test_variant_follows_the_device_type(device_under_test):
+    """'auto' takes the work-item variant on a CPU device and the work-group one on any other (a GPU); the
+    depth order, a single work-item, runs on the scanner's own device on a CPU and on a CPU device beside a
+    GPU. Holds on every device type: each asserts what its own type gets."""
     import pyopencl as cl
 
     from octcl.device.scanner import sort_device_for
 
-    automatic = ScannerKernels(NARROW)
-    assert automatic.device.type & cl.device_type.CPU and automatic.variant == "work-item"
-    assert kernels32.work_group_size <= automatic.device.max_work_group_size
-    # The depth order, a single work-item, never runs on a GPU.
-    assert sort_device_for(automatic.device) == automatic.device
-    assert sort_device_for(_FakeGpu()).type & cl.device_type.CPU
+    automatic = ScannerKernels(NARROW, device=device_under_test)
+    on_cpu = bool(device_under_test.type & cl.device_type.CPU)
+    assert automatic.variant == ("work-item" if on_cpu else "work-group")
+    assert automatic.work_group_size <= device_under_test.max_work_group_size
+    sorter = sort_device_for(device_under_test)
+    if on_cpu:
+        assert sorter == device_under_test
+    else:
+        assert sorter is None or sorter.type & cl.device_type.CPU
+    beside_a_gpu = sort_device_for(_FakeGpu())
+    assert beside_a_gpu is None or beside_a_gpu.type & cl.device_type.CPU
 
 
 class _FakeGpu:

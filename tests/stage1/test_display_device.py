@@ -10,7 +10,7 @@ on a real scan's levels at the default scanner, Oclgrind on a small scanner
 
 import numpy as np
 import pytest
-from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
+from conftest import KERNEL_IMPLEMENTATIONS, OCLGRIND_LOG, implementation_device, oclgrind_reports
 
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.host.optim.adam import Adam
@@ -24,7 +24,7 @@ from octcl.host.stage1.operator_device import FieldKernels
 from octcl.host.pipeline.target import read_target, target_scan
 
 SMALL = ScannerConfig(a_scans=8, xmax_um=48.0)
-CASES = [(name, double) for name in ("pocl", "intel", "oclgrind") for double in (False, True)]
+CASES = [(name, double) for name in (*KERNEL_IMPLEMENTATIONS, "oclgrind") for double in (False, True)]
 #: Largest |G_kernels − G_twin| relative to max|G_twin| (float32 measured 4e−6 on Uniform A; float64 4e−14).
 GRADIENT_TOLERANCE = {False: 2e-5, True: 1e-12}
 #: Where the fit's device array ``stats`` holds P_m.
@@ -41,7 +41,7 @@ def case(request, official_data):
         levels[rng.uniform(size=config.shape) < 0.1] = 0
     else:
         levels = target_scan(read_target(official_data / "Scan_Exp1_Uniform_A.png"))
-    return FieldKernels(config, device=implementation_device(name), double=double), levels, name
+    return FieldKernels(config, device=implementation_device(name, double), double=double), levels, name
 
 
 @pytest.fixture

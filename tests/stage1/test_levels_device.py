@@ -11,7 +11,7 @@ max |NumPy's|; sums relative to the sum of the terms' magnitudes.
 
 import numpy as np
 import pytest
-from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
+from conftest import KERNEL_IMPLEMENTATIONS, OCLGRIND_LOG, implementation_device, oclgrind_reports
 
 from octcl.device.runtime import implementation
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
@@ -30,7 +30,7 @@ SMALL = ScannerConfig(a_scans=8, xmax_um=48.0)
 #: over 262,144 terms near 1e−6).
 TOLERANCE = {False: 1e-5, True: 1e-12}
 
-CASES = [(name, double) for name in ("pocl", "intel", "oclgrind") for double in (False, True)]
+CASES = [(name, double) for name in (*KERNEL_IMPLEMENTATIONS, "oclgrind") for double in (False, True)]
 
 
 def case_id(case) -> str:
@@ -42,7 +42,7 @@ def case_id(case) -> str:
 def built_ops(request):
     name, double = request.param
     config = SMALL if name == "oclgrind" else DEFAULT_CONFIG
-    return LevelKernels(FieldKernels(config, device=implementation_device(name), double=double))
+    return LevelKernels(FieldKernels(config, device=implementation_device(name, double), double=double))
 
 
 @pytest.fixture

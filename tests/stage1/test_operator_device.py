@@ -19,7 +19,7 @@ import re
 
 import numpy as np
 import pytest
-from conftest import OCLGRIND_LOG, implementation_device, oclgrind_reports
+from conftest import KERNEL_IMPLEMENTATIONS, OCLGRIND_LOG, implementation_device, oclgrind_reports
 
 from octcl.device.runtime import implementation
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
@@ -34,7 +34,7 @@ SHORT = ScannerConfig(depth_pixels=64, a_scans=100, xmax_um=600.0)
 #: Relative max error asserted for each precision (module docstring).
 TOLERANCE = {False: 1e-6, True: 1e-13}
 
-CASES = [(name, double) for name in ("pocl", "intel", "oclgrind") for double in (False, True)]
+CASES = [(name, double) for name in (*KERNEL_IMPLEMENTATIONS, "oclgrind") for double in (False, True)]
 
 
 def case_id(case) -> str:
@@ -46,7 +46,7 @@ def case_id(case) -> str:
 def built_kernels(request):
     name, double = request.param
     config = SMALL if name == "oclgrind" else DEFAULT_CONFIG
-    return FieldKernels(config, device=implementation_device(name), double=double)
+    return FieldKernels(config, device=implementation_device(name, double), double=double)
 
 
 def oclgrind_log_from(start: int) -> str:
