@@ -160,9 +160,10 @@ def time_to_scores(trace: list[dict], final: float, others: dict | None = None) 
 
     ``final`` is the run's final score; its level is final − 1e−4. ``others``
     adds {label: score} (the target's ceiling images' scores). None where
-    never reached.
+    never reached; a ceiling score a budget left out (None) is not a level.
     """
-    levels = {**{f"{level:g}": level for level in SCORE_LEVELS}, "final-1e-4": final - 1e-4, **(others or {})}
+    levels = {**{f"{level:g}": level for level in SCORE_LEVELS}, "final-1e-4": final - 1e-4,
+              **{label: score for label, score in (others or {}).items() if score is not None}}
     scored = [(entry["time_s"], entry["score"]) for entry in trace if entry.get("score") is not None]
     return {label: next((t for t, score in scored if score >= level), None) for label, level in levels.items()}
 

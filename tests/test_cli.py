@@ -494,3 +494,15 @@ def test_invert_refuses_a_bad_field_schedule_before_any_work(tmp_path, capsys, o
     status, _, err = run(capsys, "invert", official_data / "Scan_Exp2_Layers_A.png", "-o", output, *options)
     assert status == 2 and message in err and err.count("\n") == 1
     assert not output.exists()
+
+
+def test_the_process_age_is_the_processes_own_to_the_hundredth():
+    """A budget counts from the process's start: the age a child reports lies between the time it slept
+    and the time its parent saw it run (psutil's creation time, with Linux's whole-second boot time, was up
+    to a second off)."""
+    code = "import time; time.sleep(0.3); from octcl.cli import process_age_s; print(process_age_s())"
+    began = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    wall = time.monotonic() - began
+    assert done.returncode == 0, done.stderr
+    assert 0.3 <= float(done.stdout) <= wall + 0.02

@@ -46,6 +46,7 @@ ceiling that fails the run loudly.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -128,6 +129,12 @@ FIXED_THREADS = 1
 #: :data:`FINAL_RESERVE_FRACTION` of itself instead (1.5 s of 10 s).
 FINAL_RESERVE_S = 7.0
 FINAL_RESERVE_FRACTION = 0.15
+#: Seconds a process needs after :func:`invert` returns: the report, the summary, the interpreter's exit
+#: (deadline mode leaves out a ceiling score that would eat into them).
+EXIT_RESERVE_S = 0.25
+#: Seconds of a run's first exact score, before one has been timed: torch's import, the LPIPS network and
+#: the target's maps, one score (2–3 s on two cores; :data:`octcl.host.stage1.solve.AIM_FIRST_ROUND_S`).
+SCORE_FIRST_S = 2.5
 
 
 @dataclass
@@ -422,9 +429,11 @@ class _LazyExactScore:
         self.levels = target_levels(scan, config)
         # The metric reads the Struct map from the target's pixels and the maps from its scan: both must be
         # those of its levels for equal levels to mean identical images.
-        self.grey = np.array_equal(target_struct_for_metrics(target), scorer._levels_for_metrics(self.levels)) \
+        self.grey = np.array_equal(target_struct_for_metrics(target), scorer.levels_for_metrics(self.levels)) \
             and np.array_equal(scan, target_scan(self.levels))
         self.perfect = {**dict.fromkeys(scorer.COMPONENTS, 1.0), "mean": 1.0}
+        self.scores = {}  # sha256 of the levels → their components: each image is scored once
+        self.seconds = 0.0  # what the last computed score took (the network's construction apart)
 
     def built(self):
         if self._score is None:
@@ -433,10 +442,29 @@ class _LazyExactScore:
             self._score = ExactScore(self.target)
         return self._score
 
+    def _key(self, levels) -> bytes:
+        return hashlib.sha256(np.ascontiguousarray(levels, dtype=np.uint8).tobytes()).digest()
+
+    def cost_s(self, levels) -> float:
+        """Seconds a call for ``levels`` would take: 0 for an image scored before (or a grey target's own), the
+        last computation's time once one ran, else :data:`SCORE_FIRST_S` (torch, the network, one score)."""
+        if (self.grey and np.array_equal(levels, self.levels)) or self._key(levels) in self.scores:
+            return 0.0
+        return self.seconds if self.scores else SCORE_FIRST_S
+
     def __call__(self, levels):
         if self.grey and np.array_equal(levels, self.levels):
             return dict(self.perfect)
-        return self.built()(levels)
+        # One run asks for the same levels' score more than once: the aim step scores the error-diffused
+        # image and each aim it keeps, stage 3 scores its input (the last aim, where the start renders it)
+        # and the ceiling the error-diffused image again. The score is a function of the levels alone.
+        key = self._key(levels)
+        if key not in self.scores:
+            score = self.built()
+            start = time.monotonic()
+            self.scores[key] = score(levels)
+            self.seconds = time.monotonic() - start
+        return dict(self.scores[key])
 
 
 def field_budget_s(regime: str, time_budget_s: float, elapsed_s: float) -> float:
@@ -792,13 +820,23 @@ class _Run:
                       ceiling=self.ceiling.ceiling if fixed else None, threads=self.plan.threads,
                       target_score=target_score, aim=first.aim)
 
+    def ceiling_score(self, image) -> float | None:
+        """The exact score of one of the ceiling's images; in deadline mode None where computing it would end
+        past the budget, less :data:`EXIT_RESERVE_S` for what follows the result (a budget is the process's)."""
+        end = time.monotonic() + self.exact_score.cost_s(image)
+        if not self.plan.fixed and end > self.started + self.time_budget_s - EXIT_RESERVE_S:
+            return None
+        return self.exact_score(image)["mean"]
+
     def outcome(self, name: str, first: _Start, result) -> tuple[InvertResult, dict]:
         """The result and the report's settings, after the last write.
 
         The ceiling of the target (up to two exact scores, none for a target
-        the scanner could have written) and where the phantom stands under
-        it (the levels its score was computed from) come after the last
-        write, so that they take nothing from the budget.
+        the scanner could have written, none again for an image the run has
+        scored already) and where the phantom stands under it (the levels
+        its score was computed from) come after the last write; in deadline
+        mode a ceiling score that would end past the budget is left out
+        (None, and the summary says so).
         """
         plan, seconds, writer = self.plan, self.seconds, self.writer
         seconds["refine"] = self.elapsed() - self.offset
@@ -808,7 +846,7 @@ class _Run:
         seconds["total"] = self.elapsed()
         self.tell("done", result.iterations, plan.schedule.total_iterations, done=True)
         levels, rendered = self.exact_score.levels, result.levels
-        ceiling = measure_ceiling(levels, lambda image: self.exact_score(image)["mean"])
+        ceiling = measure_ceiling(levels, self.ceiling_score)
         outcome = InvertResult(
             target=name, output=str(self.output_path), score=result.components["mean"],
             components=result.components, initial_score=result.initial_components["mean"],

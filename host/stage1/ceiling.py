@@ -113,22 +113,24 @@ class Ceiling:
     ----------
     writable_share : float
         Share of the target's pixels at levels the scanner writes.
-    nearest_score : float
-        Exact score of :func:`nearest_writable`'s image against the target.
-    diffused_score : float
-        Exact score of :func:`error_diffused`'s image against the target.
+    nearest_score : float or None
+        Exact score of :func:`nearest_writable`'s image against the target;
+        None where the caller's ``score`` left it out (a budget it would overrun).
+    diffused_score : float or None
+        Exact score of :func:`error_diffused`'s image against the target, or None likewise.
     """
 
     writable_share: float
-    nearest_score: float
-    diffused_score: float
+    nearest_score: float | None
+    diffused_score: float | None
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
 def measure_ceiling(levels: np.ndarray, score) -> Ceiling:
-    """The :class:`Ceiling` of target ``levels``; ``score(levels) -> float`` is the exact score against the target.
+    """The :class:`Ceiling` of target ``levels``; ``score(levels) -> float | None`` is the exact score against the
+    target, or None for an image it leaves out.
 
     A target with every pixel writable is its own best image: both scores
     are then 1.0 without being computed.
@@ -136,7 +138,9 @@ def measure_ceiling(levels: np.ndarray, score) -> Ceiling:
     share = writable_share(levels)
     if share == 1.0:
         return Ceiling(1.0, 1.0, 1.0)
-    return Ceiling(share, float(score(nearest_writable(levels))), float(score(error_diffused(levels))))
+    nearest = score(nearest_writable(levels))
+    diffused = score(error_diffused(levels))
+    return Ceiling(share, None if nearest is None else float(nearest), None if diffused is None else float(diffused))
 
 
 __all__ = ["WRITABLE", "Ceiling", "aimed_levels", "error_diffused", "measure_ceiling", "nearest_writable",

@@ -239,3 +239,31 @@ def test_levels_equal_to_a_grey_target_score_exactly_one_as_the_scorer_computes_
     other = levels.copy()
     other[0, 0] ^= 1
     assert lazy(other)["mean"] < 1.0 and lazy._score is not None
+
+
+def test_the_lazy_scorer_scores_each_image_once(layers_path):
+    """A run asks for the same levels' score more than once (the aim step, stage 3's input, the ceiling): the
+    scorer computes each image once, hands out copies, and keeps what the computation took for stage 3's clock."""
+    from octcl.host.pipeline.invert import _LazyExactScore
+    from octcl.host.pipeline.target import read_target, target_scan
+    from octcl.host.stage1.levels import target_levels
+
+    target = read_target(layers_path)
+    levels = target_levels(target_scan(target))
+    lazy = _LazyExactScore(target, DEFAULT_CONFIG)
+    calls = []
+
+    def counted(image):
+        calls.append(image.copy())
+        return {"mean": float(image.mean()) / 255.0}
+
+    lazy._score = counted  # stands in for ExactScore: what matters is how often it is asked
+    moved = levels.copy()
+    moved[0, :8] ^= 1
+    first = lazy(moved)
+    first["mean"] = -1.0  # a caller's change stays the caller's
+    assert lazy(moved) == {"mean": float(moved.mean()) / 255.0} and len(calls) == 1
+    again = moved.copy()
+    again[1, 0] ^= 1
+    lazy(again)
+    assert len(calls) == 2 and lazy.seconds >= 0.0
