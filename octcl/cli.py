@@ -503,8 +503,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 def command() -> int:
     """The ``octcl`` program: :func:`main` of the command line, its time budgets counted from the process's
-    start (:func:`process_started`)."""
-    return main(started=process_started())
+    start (:func:`process_started`), and the process's end at once (:func:`exit_now`)."""
+    exit_now(main(started=process_started()))
+
+
+def exit_now(code: int) -> None:
+    """End the process with ``code`` once its output is out, without the interpreter's teardown.
+
+    A time budget is the process's: measured on orange.png with ``--time-budget 3`` on two cores, the
+    interpreter took 0.64–0.68 s to exit after :func:`main` returned (releasing torch's and pyopencl's
+    modules, threads and OpenCL contexts), 0.05 s with this. Everything octcl writes is complete by then
+    (files are written to a temporary name and renamed, the checkpoint writer is joined, a batch's cluster
+    closed); what is left is the log's handlers and the standard streams, flushed here.
+    """
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed or broken stream has nothing left to write
+            pass
+    os._exit(code)
 
 
 def main(argv=None, started: float | None = None) -> int:
@@ -553,4 +571,4 @@ def _one_line(exc: BaseException) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(command())
+    command()

@@ -132,14 +132,15 @@ SCHEDULES = {"default": "", "physical": "regime='physical'", "budget-10": "time_
 
 def run_invert(target: Path, output: Path, report: Path, budget: float, seed: int, iterations: int | None,
                schedule: str = "default") -> None:
-    """invert() in a child process, so that ru_maxrss is this run's peak; its budget runs from the child's start,
-    as ``octcl invert``'s does."""
+    """invert() in a child process, so that ru_maxrss is this run's peak; its budget runs from the child's start
+    and it ends as ``octcl invert`` does (:func:`octcl.cli.exit_now`)."""
     code = ("import sys; from octcl.host.pipeline.invert import invert; from octcl.host.stage3.refine import RefineSchedule; "
-            "from octcl.cli import process_started; "
+            "from octcl.cli import exit_now, process_started; "
             "options = dict(time_budget_s=float(sys.argv[4])); "
             f"options.update(dict({SCHEDULES[schedule]})); "
             "invert(sys.argv[1], sys.argv[2], seed=int(sys.argv[5]), report_path=sys.argv[3], "
-            "iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]), started=process_started(), **options)")
+            "iterations=None if sys.argv[6] == 'None' else int(sys.argv[6]), started=process_started(), **options); "
+            "exit_now(0)")
     subprocess.run([sys.executable, "-c", code, str(target), str(output), str(report), str(budget), str(seed),
                     str(iterations)], check=True)
 
@@ -162,10 +163,10 @@ def time_to_scores(trace: list[dict], final: float, others: dict | None = None) 
     adds {label: score} (the target's ceiling images' scores). None where
     never reached; a ceiling score a budget left out (None) is not a level.
     """
-    levels = {**{f"{level:g}": level for level in SCORE_LEVELS}, "final-1e-4": final - 1e-4,
-              **{label: score for label, score in (others or {}).items() if score is not None}}
+    levels = {**{f"{level:g}": level for level in SCORE_LEVELS}, "final-1e-4": final - 1e-4, **(others or {})}
     scored = [(entry["time_s"], entry["score"]) for entry in trace if entry.get("score") is not None]
-    return {label: next((t for t, score in scored if score >= level), None) for label, level in levels.items()}
+    return {label: None if level is None else next((t for t, score in scored if score >= level), None)
+            for label, level in levels.items()}
 
 
 #: Scores whose time to reach :func:`time_to_scores` reports: the published
