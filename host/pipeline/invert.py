@@ -65,6 +65,7 @@ from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from ..stage1.backend import BACKENDS
 from ..stage1.ceiling import WRITABLE, aimed_levels, measure_ceiling
 from ..stage1.levels import target_levels
+from ..stage1.start import DISPLAY_ITERATIONS
 from ..stage3.refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, RefineClock, check_target_score, refine
 from .target import check_target, read_target, target_scan, target_struct_for_metrics
 
@@ -91,16 +92,9 @@ LINEAR_WRITE_RESERVE_S = 1.0
 #: Stage 1's seconds at least, however little of the budget is left.
 MIN_FIELD_BUDGET_S = 0.2
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
-#: over them); in the linear regime those of the first display fit, the
-#: second, run only where the first does not render every aimed level, has
-#: half as many (:func:`octcl.host.stage1.start.linear_start`). Linear: with the
-#: hinge fit (:func:`octcl.host.stage1.hinge.fit_levels`) after the projections,
-#: 300, 150 and 75 steps all put every pixel of the nine development scans
-#: at its aimed level with the same scores (0.5.0, docs/benchmarks.md);
-#: with 0.6.0's faster hinge fit and the aim step, 75 steps took 5.1 s of
-#: median wall time against 150's 6.1 s, scored 9.5e−7 less on orange and
-#: took 1–2 s more on the two plain skins (docs/benchmarks.md, 0.6.0).
-FIELD_ITERATIONS = {"physical": 1500, "linear": 150}
+#: over them); in the linear regime those of the first display fit
+#: (:data:`octcl.host.stage1.start.DISPLAY_ITERATIONS`, where the choice is measured).
+FIELD_ITERATIONS = {"physical": 1500, "linear": DISPLAY_ITERATIONS}
 #: Stage 3's schedule in the linear regime: short steps while they gain.
 #: From a linear start the physical regime's schedule fell at once (its
 #: first 20 steps took Uniform B from 0.99964 to 0.9979; steps 4× shorter,

@@ -24,7 +24,13 @@ from .backend import Backend, NumpyBackend
 from .levels import target_levels
 from .solve import FieldSchedule, FieldSolve, default_schedules
 
-#: Display-fit steps of the first candidate by default: ``octcl invert``'s in the linear regime.
+#: Display-fit steps of the first candidate by default, ``octcl invert``'s in the linear regime; the
+#: second candidate, run only where the first does not render every aimed level, has half as many. With the
+#: hinge fit (:func:`octcl.host.stage1.hinge.fit_levels`) after the projections, 300, 150 and 75 steps all
+#: put every pixel of the nine development scans at its aimed level with the same scores (0.5.0,
+#: docs/benchmarks.md); with 0.6.0's faster hinge fit and the aim step, 75 steps took 5.1 s of median wall
+#: time against 150's 6.1 s, scored 9.5e−7 less on orange and took 1–2 s more on the two plain skins
+#: (docs/benchmarks.md, 0.6.0).
 DISPLAY_ITERATIONS = 150
 @dataclass
 class LinearStart:
