@@ -4,7 +4,13 @@ import os
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from octcl import _reference as ref
+from octcl.config import ScannerConfig
+from octcl.phantom import Phantom
+from octcl.render import Rendering
 
 # Oclgrind reads its checks from the environment when its platform starts, at the first platform
 # query of the process: data races and OpenCL API misuse on, every report to a log the kernel tests
@@ -27,7 +33,7 @@ def pytest_terminal_summary(terminalreporter):
     that a CI log shows which implementations the kernels were proven on."""
     import re
 
-    counts = {name: {} for name in (*IMPLEMENTATION_SOURCES, *gpu_implementations())}
+    counts = {name: {} for name in dict.fromkeys((*IMPLEMENTATION_SOURCES, *KERNEL_IMPLEMENTATIONS))}
     for outcome in ("passed", "failed", "skipped"):
         for report in terminalreporter.stats.get(outcome, []):
             for name, tally in counts.items():
@@ -258,3 +264,37 @@ def slow_clock(monkeypatch):
                                                                   process_time=reading))
 
     return install
+
+
+# ------------------------------------------------ the float64 reference scanner's renders, for the stage tests
+#: A small scanner (32 rows, 16 A-scans of 6 µm) for the float64 reference's renders.
+SMALL_SCANNER = ScannerConfig(depth_pixels=32, a_scans=16, xmax_um=96.0)
+
+
+def random_field(config: ScannerConfig, seed: int) -> np.ndarray:
+    """A speckle-like field: complex Gaussian, brighter near the top."""
+    rng = np.random.default_rng(seed)
+    nz, nx = config.shape
+    decay = np.exp(-np.arange(nz) / (nz / 3))[:, None]
+    return decay * (rng.normal(size=(nz, nx)) + 1j * rng.normal(size=(nz, nx)))
+
+
+def reference_a_scans(phantom: Phantom, config: ScannerConfig, shadowing: bool = True) -> np.ndarray:
+    """Complex A-scans of the float64 reference scanner, as octcl.render builds them."""
+    spectra = ref.render_spectra(phantom, config, shadowing=shadowing)
+    return np.fft.ifft(spectra * ref.hann_window(config.depth_pixels)[:, None], axis=0)
+
+
+def reference_rendering(phantom: Phantom, config: ScannerConfig, shadowing: bool = True):
+    """:func:`reference_a_scans` and their Rendering."""
+    a_scans = reference_a_scans(phantom, config, shadowing)
+    return a_scans, Rendering.from_a_scans(a_scans)
+
+
+def scanner_made_target(seed: int) -> np.ndarray:
+    """Levels of the reference scanner's rendering of a random phantom on the full grid (a feasible target)."""
+    rng = np.random.default_rng(seed)
+    n = 40_000
+    phantom = Phantom(rng.uniform(-1536, 1530, n), rng.uniform(-3, 3, n), rng.uniform(0, 1536, n),
+                      rng.lognormal(-6, 1.5, n) * np.exp(-rng.uniform(0, 1536, n) / 500))
+    return ref.render_reference(phantom).levels

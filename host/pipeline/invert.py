@@ -62,7 +62,7 @@ from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 
-from ..stage1.backend import BACKENDS
+from ..stage1.backend import BACKENDS, make_backend
 from ..stage1.ceiling import WRITABLE, aimed_levels, measure_ceiling
 from ..stage1.levels import target_levels
 from ..stage1.start import DISPLAY_ITERATIONS
@@ -439,15 +439,19 @@ class _LazyExactScore:
     def _key(self, levels) -> bytes:
         return hashlib.sha256(np.ascontiguousarray(levels, dtype=np.uint8).tobytes()).digest()
 
+    def _perfect(self, levels) -> bool:
+        """Whether ``levels`` are a grey target's own: they score 1 on every component without torch."""
+        return self.grey and np.array_equal(levels, self.levels)
+
     def cost_s(self, levels) -> float:
         """Seconds a call for ``levels`` would take: 0 for an image scored before (or a grey target's own), the
         last computation's time once one ran, else :data:`SCORE_FIRST_S` (torch, the network, one score)."""
-        if (self.grey and np.array_equal(levels, self.levels)) or self._key(levels) in self.scores:
+        if self._perfect(levels) or self._key(levels) in self.scores:
             return 0.0
         return self.seconds if self.scores else SCORE_FIRST_S
 
     def __call__(self, levels):
-        if self.grey and np.array_equal(levels, self.levels):
+        if self._perfect(levels):
             return dict(self.perfect)
         # One run asks for the same levels' score more than once: the aim step scores the error-diffused
         # image and each aim it keeps, stage 3 scores its input (the last aim, where the start renders it)
@@ -781,8 +785,6 @@ class _Run:
             self.tell("field", iteration, steps)
 
         self.tell("field", 0, 0)
-        from ..stage1.backend import make_backend
-
         field_backend = make_backend(plan.backend, self.config, plan.threads)
         first = _STARTS[plan.regime](target_scan(self.target), self.config, plan.schedule, plan.field_iterations,
                                      plan.field_schedule, self.field_budget, plan.threads, self.seed, field_step,

@@ -6,7 +6,7 @@ J. Appl. Cryst. 53, 2020), the algorithm is a value a user composes, not
 code: ``display(150) + project(100) + hinge(200)`` is the default, and
 ``FieldSchedule.parse("display:150,project:100,hinge:200")`` the same from
 ``octcl invert --field-schedule``. One :class:`FieldSolve` carries a run's
-state (the field, the aimed levels, the FFT threads) and its history; one
+state (the field, the aimed levels, the backend its steps run on) and its history; one
 step (:data:`STEPS`) is a function apart from the loop that runs them.
 
 Steps, each from the field the previous one left (the first from the

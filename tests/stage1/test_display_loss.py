@@ -4,13 +4,10 @@
 import numpy as np
 import pytest
 
-from octcl.config import ScannerConfig
 from octcl.host.stage1.display_loss import DisplayGoal, box3, box3_adjoint, display_loss
 from octcl.host.stage1.operator import FieldOperator
 from octcl.render import DISPLAY_SLOPE
-
-#: A small scanner (32 rows, 16 A-scans of 6 µm) for the reference comparisons.
-SMALL = ScannerConfig(depth_pixels=32, a_scans=16, xmax_um=96.0)
+from conftest import SMALL_SCANNER as SMALL
 
 
 def _small_goal(seed: int = 0):

@@ -4,40 +4,13 @@
 import numpy as np
 import pytest
 
-from octcl import _reference as ref
-from octcl.config import ScannerConfig
 from octcl.host.stage1.operator import FieldOperator
 from octcl.host.stage1.hinge import LEVEL_CHECK_EVERY, LEVEL_FIT_ITERATIONS, fit_levels
-from octcl.phantom import Phantom
 from octcl.render import Rendering
-
-#: A small scanner (32 rows, 16 A-scans of 6 µm) for the reference renders.
-SMALL = ScannerConfig(depth_pixels=32, a_scans=16, xmax_um=96.0)
-
-
-def _random_field(config: ScannerConfig, seed: int) -> np.ndarray:
-    """A speckle-like field: complex Gaussian, brighter near the top."""
-    rng = np.random.default_rng(seed)
-    nz, nx = config.shape
-    decay = np.exp(-np.arange(nz) / (nz / 3))[:, None]
-    return decay * (rng.normal(size=(nz, nx)) + 1j * rng.normal(size=(nz, nx)))
-
-
-def _reference(phantom: Phantom, config: ScannerConfig, shadowing: bool = True):
-    """Complex A-scans of the float64 reference scanner and their Rendering."""
-    spectra = ref.render_spectra(phantom, config, shadowing=shadowing)
-    a_scans = np.fft.ifft(spectra * ref.hann_window(config.depth_pixels)[:, None], axis=0)
-    return a_scans, Rendering.from_a_scans(a_scans)
+from conftest import random_field, SMALL_SCANNER as SMALL
 
 
 # --------------------------------------------------------------- retrieval
-def _scanner_made_target(seed: int) -> np.ndarray:
-    """Levels of the reference scanner's rendering of a random phantom on the full grid (a feasible target)."""
-    rng = np.random.default_rng(seed)
-    n = 40_000
-    phantom = Phantom(rng.uniform(-1536, 1530, n), rng.uniform(-3, 3, n), rng.uniform(0, 1536, n),
-                      rng.lognormal(-6, 1.5, n) * np.exp(-rng.uniform(0, 1536, n) / 500))
-    return ref.render_reference(phantom).levels
 
 
 def test_fit_levels_puts_every_pixel_at_its_level_and_the_brightest_at_one():
@@ -45,7 +18,7 @@ def test_fit_levels_puts_every_pixel_at_its_level_and_the_brightest_at_one():
     puts every pixel back at its level, its brightest pixel at |A| = 1 so that the display's normalisation
     holds, and stops as soon as the levels are all there."""
     operator = FieldOperator(SMALL)
-    truth = _random_field(SMALL, 5)
+    truth = random_field(SMALL, 5)
     levels = Rendering.from_a_scans(operator.apply(truth)).levels
     rng = np.random.default_rng(6)
     start = truth * (1 + 0.05 * (rng.normal(size=truth.shape) + 1j * rng.normal(size=truth.shape)))

@@ -8,15 +8,7 @@ from octcl import _reference as ref
 from octcl.config import ScannerConfig
 from octcl.host.stage1.operator import FieldOperator, cell_depths_um, lateral_taps
 from octcl.phantom import Phantom
-
-#: A small scanner (32 rows, 16 A-scans of 6 µm) for the reference comparisons.
-SMALL = ScannerConfig(depth_pixels=32, a_scans=16, xmax_um=96.0)
-
-
-def _reference_a_scans(phantom: Phantom, config: ScannerConfig, shadowing: bool) -> np.ndarray:
-    """Complex A-scans of the float64 reference scanner, as octcl.render builds them."""
-    spectra = ref.render_spectra(phantom, config, shadowing=shadowing)
-    return np.fft.ifft(spectra * ref.hann_window(config.depth_pixels)[:, None], axis=0)
+from conftest import reference_a_scans, SMALL_SCANNER as SMALL
 
 
 def test_cell_depths_fall_on_dft_bins():
@@ -44,7 +36,7 @@ def test_operator_matches_the_reference_scanner():
     phantom = Phantom(ref.ascan_positions_um(config)[columns], np.zeros(nz * nx), z_um,
                       100 * amplitude**2)
     field = amplitude * np.exp(-2j * (2 * np.pi / config.wavelength_um) * z_um)
-    expected = _reference_a_scans(phantom, config, shadowing=False)
+    expected = reference_a_scans(phantom, config, shadowing=False)
     got = FieldOperator(config).apply(field)
     assert np.abs(got - expected).max() <= 1e-9 * np.abs(expected).max()
 

@@ -4,45 +4,18 @@
 import numpy as np
 import pytest
 
-from octcl import _reference as ref
-from octcl.config import ScannerConfig
 from octcl.host.stage1.operator import FieldOperator
 from octcl.host.stage1.projections import retrieve_field
-from octcl.phantom import Phantom
 from octcl.render import Rendering
-
-#: A small scanner (32 rows, 16 A-scans of 6 µm) for the reference renders.
-SMALL = ScannerConfig(depth_pixels=32, a_scans=16, xmax_um=96.0)
-
-
-def _random_field(config: ScannerConfig, seed: int) -> np.ndarray:
-    """A speckle-like field: complex Gaussian, brighter near the top."""
-    rng = np.random.default_rng(seed)
-    nz, nx = config.shape
-    decay = np.exp(-np.arange(nz) / (nz / 3))[:, None]
-    return decay * (rng.normal(size=(nz, nx)) + 1j * rng.normal(size=(nz, nx)))
-
-
-def _reference(phantom: Phantom, config: ScannerConfig, shadowing: bool = True):
-    """Complex A-scans of the float64 reference scanner and their Rendering."""
-    spectra = ref.render_spectra(phantom, config, shadowing=shadowing)
-    a_scans = np.fft.ifft(spectra * ref.hann_window(config.depth_pixels)[:, None], axis=0)
-    return a_scans, Rendering.from_a_scans(a_scans)
+from conftest import scanner_made_target
 
 
 # --------------------------------------------------------------- retrieval
-def _scanner_made_target(seed: int) -> np.ndarray:
-    """Levels of the reference scanner's rendering of a random phantom on the full grid (a feasible target)."""
-    rng = np.random.default_rng(seed)
-    n = 40_000
-    phantom = Phantom(rng.uniform(-1536, 1530, n), rng.uniform(-3, 3, n), rng.uniform(0, 1536, n),
-                      rng.lognormal(-6, 1.5, n) * np.exp(-rng.uniform(0, 1536, n) / 500))
-    return ref.render_reference(phantom).levels
 
 
 def test_retrieve_field_matches_most_levels_of_a_scanner_made_target():
     """300 projections from the regularised start put most pixels at their level."""
-    levels = _scanner_made_target(0)
+    levels = scanner_made_target(0)
     fit = retrieve_field(levels)
     a_scans = FieldOperator().apply(fit.field)
     assert fit.iterations == 300 and fit.clock_steps == 0
@@ -65,7 +38,7 @@ def test_retrieve_field_stays_bounded_on_an_official_scan(official_data):
 
 
 def test_retrieve_field_is_deterministic_and_stops_at_its_budget():
-    levels = _scanner_made_target(1)
+    levels = scanner_made_target(1)
     first, second = retrieve_field(levels, iterations=20), retrieve_field(levels, iterations=20)
     np.testing.assert_array_equal(first.field, second.field)
     calls = []

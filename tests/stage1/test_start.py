@@ -3,24 +3,10 @@
 
 import numpy as np
 
-from octcl import _reference as ref
-from octcl.config import ScannerConfig
 from octcl.host.stage1.solve import default_schedules, display, project
 from octcl.host.stage1.projections import retrieve_field
 from octcl.host.stage1.start import linear_start
-from octcl.phantom import Phantom
-
-#: A small scanner (32 rows, 16 A-scans of 6 µm) for the reference renders.
-SMALL = ScannerConfig(depth_pixels=32, a_scans=16, xmax_um=96.0)
-
-
-def _scanner_made_target(seed: int) -> np.ndarray:
-    """Levels of the reference scanner's rendering of a random phantom on the full grid (a feasible target)."""
-    rng = np.random.default_rng(seed)
-    n = 40_000
-    phantom = Phantom(rng.uniform(-1536, 1530, n), rng.uniform(-3, 3, n), rng.uniform(0, 1536, n),
-                      rng.lognormal(-6, 1.5, n) * np.exp(-rng.uniform(0, 1536, n) / 500))
-    return ref.render_reference(phantom).levels
+from conftest import scanner_made_target
 
 
 def test_linear_start_stops_trying_once_a_candidate_renders_every_aimed_level(official_data):
@@ -38,7 +24,7 @@ def test_linear_start_stops_trying_once_a_candidate_renders_every_aimed_level(of
 
 
 def test_linear_start_keeps_the_best_scoring_candidate():
-    levels = _scanner_made_target(2)
+    levels = scanner_made_target(2)
     scores = iter([0.5, 0.9, 0.7])  # the second candidate (half the steps) scores best
     calls = []
     schedules = tuple(display(steps) + project(20) for steps in (10, 5, 20))
@@ -58,7 +44,7 @@ def test_linear_start_keeps_the_best_scoring_candidate():
 
 
 def test_linear_start_leaves_out_candidates_the_budget_cannot_hold():
-    levels = _scanner_made_target(2)
+    levels = scanner_made_target(2)
     found = linear_start(levels, lambda rendered: float(np.mean(rendered == levels)),
                          schedules=default_schedules(400), time_budget_s=0.5, threads=1)
     assert len(found.candidates) == 1 and found.clock_steps >= 1

@@ -7,24 +7,8 @@ from octcl import _reference as ref
 from octcl.config import ScannerConfig
 from octcl.host.stage2.capped import CAP_STEP, children_per_cell, decode_field
 from octcl.host.stage1.operator import FieldOperator, cell_depths_um
-from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
-
-#: A small scanner (32 rows, 16 A-scans of 6 µm) for the reference renders.
-SMALL = ScannerConfig(depth_pixels=32, a_scans=16, xmax_um=96.0)
-
-
-def _random_field(config: ScannerConfig, seed: int) -> np.ndarray:
-    """A speckle-like field: complex Gaussian, brighter near the top."""
-    rng = np.random.default_rng(seed)
-    nz, nx = config.shape
-    decay = np.exp(-np.arange(nz) / (nz / 3))[:, None]
-    return decay * (rng.normal(size=(nz, nx)) + 1j * rng.normal(size=(nz, nx)))
-
-
-def _reference_a_scans(phantom: Phantom, config: ScannerConfig, shadowing: bool = True) -> np.ndarray:
-    """Complex A-scans of the float64 reference scanner."""
-    spectra = ref.render_spectra(phantom, config, shadowing=shadowing)
-    return np.fft.ifft(spectra * ref.hann_window(config.depth_pixels)[:, None], axis=0)
+from octcl.phantom import CONTRACT_Y_LIMIT_UM
+from conftest import random_field, reference_a_scans, SMALL_SCANNER as SMALL
 
 
 def _relative_error(a_scans: np.ndarray, expected: np.ndarray) -> float:
@@ -74,7 +58,7 @@ def test_children_per_cell_refuses_bad_magnitudes(bad):
 def test_decode_meets_the_contract():
     config = ScannerConfig()
     rng = np.random.default_rng(3)
-    field = _random_field(config, 3) * (rng.random(config.shape) > 0.2)
+    field = random_field(config, 3) * (rng.random(config.shape) > 0.2)
     field[0, 0] = 50.0  # one very bright cell: split into many capped children
     budget = 200_000
     phantom = decode_field(field, config, max_scatterers=budget, seed=1)
@@ -112,7 +96,7 @@ def test_decoded_cell_adds_up_to_its_complex_value():
               & (np.abs(phantom.z_um - cell_depths_um(config)[12]) < 3))
     assert centre.sum() > 50  # the cell itself holds most children
     expected = FieldOperator(config).apply(field)
-    got = _reference_a_scans(phantom, config, shadowing=False)
+    got = reference_a_scans(phantom, config, shadowing=False)
     assert _relative_error(got, expected) < 1e-5
     # Phase, not just magnitude: the brightest pixel carries the cell's phase.
     scale = np.vdot(expected, got) / np.vdot(expected, expected)
@@ -121,17 +105,17 @@ def test_decoded_cell_adds_up_to_its_complex_value():
 
 def test_decoded_speckle_field_renders_as_the_field():
     config = SMALL
-    field = _random_field(config, 5)
+    field = random_field(config, 5)
     phantom = decode_field(field, config, max_scatterers=2000, seed=2)
     expected = FieldOperator(config).apply(field)
-    assert _relative_error(_reference_a_scans(phantom, config), expected) < 2e-3
+    assert _relative_error(reference_a_scans(phantom, config), expected) < 2e-3
 
 
 def test_decode_correction_reduces_the_error():
     config = SMALL
-    field = _random_field(config, 6)
+    field = random_field(config, 6)
     expected = FieldOperator(config).apply(field)
-    errors = [_relative_error(_reference_a_scans(decode_field(field, config, max_scatterers=2000,
+    errors = [_relative_error(reference_a_scans(decode_field(field, config, max_scatterers=2000,
                                                              corrections=count), config), expected)
               for count in (0, 4)]
     assert errors[1] < 0.3 * errors[0]
@@ -148,7 +132,7 @@ def test_decode_zero_field_is_an_error():
 ])
 def test_decode_refuses_bad_fields(change):
     with pytest.raises(ValueError):
-        decode_field(change(_random_field(SMALL, 7)), SMALL)
+        decode_field(change(random_field(SMALL, 7)), SMALL)
 
 
 @pytest.mark.parametrize("level", [0, 255])

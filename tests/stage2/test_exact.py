@@ -8,29 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from octcl import _reference as ref
-from octcl.config import DEFAULT_CONFIG, ScannerConfig
+from octcl.config import DEFAULT_CONFIG
 from octcl.host.stage1.operator import FieldOperator
 from octcl.host.stage2.exact import SHADOW_BOUND, row_carriers, decode_exact, rendered_cells, row_depths_um, row_offsets_um, split_on_carriers
 from octcl.phantom import Phantom
 from octcl.render import Rendering
-
-#: A small scanner (32 rows, 16 A-scans of 6 µm) for the reference renders.
-SMALL = ScannerConfig(depth_pixels=32, a_scans=16, xmax_um=96.0)
-
-
-def _random_field(config: ScannerConfig, seed: int) -> np.ndarray:
-    """A speckle-like field: complex Gaussian, brighter near the top."""
-    rng = np.random.default_rng(seed)
-    nz, nx = config.shape
-    decay = np.exp(-np.arange(nz) / (nz / 3))[:, None]
-    return decay * (rng.normal(size=(nz, nx)) + 1j * rng.normal(size=(nz, nx)))
-
-
-def _reference(phantom: Phantom, config: ScannerConfig, shadowing: bool = True):
-    """Complex A-scans of the float64 reference scanner and their Rendering."""
-    spectra = ref.render_spectra(phantom, config, shadowing=shadowing)
-    a_scans = np.fft.ifft(spectra * ref.hann_window(config.depth_pixels)[:, None], axis=0)
-    return a_scans, Rendering.from_a_scans(a_scans)
+from conftest import random_field, reference_rendering, SMALL_SCANNER as SMALL
 
 
 # ------------------------------------------------------------------ decode
@@ -63,12 +46,12 @@ def test_rows_sit_at_their_offsets_inside_the_depth_range_on_the_files_grid():
 
 def test_a_decoded_phantom_renders_as_its_field_after_the_file_round_trip(tmp_path):
     """The rows sit on the file's 8-digit depths, so the saved phantom renders the field's levels, every one."""
-    field = _random_field(DEFAULT_CONFIG, 4)
+    field = random_field(DEFAULT_CONFIG, 4)
     phantom = decode_exact(field, DEFAULT_CONFIG)
     phantom.save(tmp_path / "decoded.txt")
     loaded = Phantom.load(tmp_path / "decoded.txt")
     assert np.array_equal(loaded.z_um, phantom.z_um)
-    _, rendering = _reference(loaded, DEFAULT_CONFIG)
+    _, rendering = reference_rendering(loaded, DEFAULT_CONFIG)
     expected = Rendering.from_a_scans(FieldOperator(DEFAULT_CONFIG).apply(field)).levels
     assert np.array_equal(rendering.levels, expected)
 
@@ -81,7 +64,7 @@ def test_rendered_cells_is_the_reference_scanners_rendering_of_the_rows():
     d, row, column = np.nonzero(weights)
     phantom = Phantom(ref.ascan_positions_um(SMALL)[column], np.zeros(row.size),
                       depth_um[row] + row_offsets_um(SMALL)[d, row], 100 * weights[d, row, column] ** 2)
-    a_scans, _ = _reference(phantom, SMALL, shadowing=False)
+    a_scans, _ = reference_rendering(phantom, SMALL, shadowing=False)
     expected = FieldOperator(SMALL).apply(rendered_cells(weights, SMALL))
     np.testing.assert_allclose(a_scans, expected, atol=1e-12 * np.abs(expected).max())
 
@@ -89,12 +72,12 @@ def test_rendered_cells_is_the_reference_scanners_rendering_of_the_rows():
 @pytest.mark.parametrize("seed", [0, 1])
 def test_decode_exact_renders_as_the_field_with_shadowing(seed):
     """The float64 scanner, shadowing included, renders the decoded phantom as A(F), to 1e−9."""
-    field = _random_field(SMALL, seed)
+    field = random_field(SMALL, seed)
     phantom = decode_exact(field, SMALL)
     nz, nx = SMALL.shape
     assert len(phantom) <= 2 * nz * nx and np.all(phantom.y_um == 0)
     assert np.all((phantom.z_um >= 0) & (phantom.z_um <= SMALL.depth_range_um))
-    a_scans, rendering = _reference(phantom, SMALL)
+    a_scans, rendering = reference_rendering(phantom, SMALL)
     expected = FieldOperator(SMALL).apply(field)
     scale = np.vdot(expected, a_scans) / np.vdot(expected, expected)
     assert np.linalg.norm(a_scans - scale * expected) <= 1e-9 * np.linalg.norm(scale * expected)
@@ -102,7 +85,7 @@ def test_decode_exact_renders_as_the_field_with_shadowing(seed):
 
 
 def test_decode_exact_keeps_shadowing_under_its_bound():
-    phantom = decode_exact(_random_field(SMALL, 2), SMALL)
+    phantom = decode_exact(random_field(SMALL, 2), SMALL)
     beam = ref.beam_weight(ref.ascan_positions_um(SMALL)[:, None] - phantom.x_um[None, :], phantom.y_um[None, :],
                            SMALL.beam_radius_um)
     shadow = ((beam * ref.amplitudes(phantom.energy_pct)[None, :]) ** 2).sum(axis=1)
@@ -111,9 +94,9 @@ def test_decode_exact_keeps_shadowing_under_its_bound():
 
 def test_shadowing_at_a_larger_scale_changes_the_rendering():
     """The bound matters: the same rows scaled up to Σ(B·a)² = 0.5 no longer render as the field."""
-    field = _random_field(SMALL, 3)
+    field = random_field(SMALL, 3)
     expected = FieldOperator(SMALL).apply(field)
-    a_scans, _ = _reference(decode_exact(field, SMALL, shadow_bound=0.5), SMALL)
+    a_scans, _ = reference_rendering(decode_exact(field, SMALL, shadow_bound=0.5), SMALL)
     scale = np.vdot(expected, a_scans) / np.vdot(expected, expected)
     assert np.linalg.norm(a_scans - scale * expected) > 1e-3 * np.linalg.norm(scale * expected)
 
