@@ -368,11 +368,31 @@ def lpips_network():
     return _build_network(_load_weights()[1])
 
 
-def lpips_distance(ref: np.ndarray, pred: np.ndarray) -> float:
-    """LPIPS v0.1 alex distance of two grey float images in [0, 1] (float32 network)."""
+def lpips_taps(image: np.ndarray) -> list:
+    """LPIPS's unit-normalised AlexNet activations of one grey float image in [0, 1] (float32 network).
+
+    The reference side of :func:`lpips_distance`, for a reference compared
+    with many images: its taps are computed once (half of each comparison's
+    forward passes), with the same arithmetic, so the distance has the same bits.
+    """
     import torch
 
     network = lpips_network()
     with torch.no_grad():
-        ref, pred = (torch.from_numpy(np.ascontiguousarray(image)) for image in (ref, pred))
-        return float(network(ref, pred))
+        grey = torch.from_numpy(np.ascontiguousarray(image))[None, None].to(network.shift.dtype)
+        return network.normalised_taps(grey)
+
+
+def lpips_distance(ref: np.ndarray, pred: np.ndarray, ref_taps: list | None = None) -> float:
+    """LPIPS v0.1 alex distance of two grey float images in [0, 1] (float32 network).
+
+    ``ref_taps``: :func:`lpips_taps` of ``ref``, computed once for many
+    comparisons (``ref`` is then not read again). The result is the same
+    either way: ``network(ref, pred)`` takes each image's taps on its own.
+    """
+    import torch
+
+    network = lpips_network()
+    with torch.no_grad():
+        taps = lpips_taps(ref) if ref_taps is None else ref_taps
+        return float(network.distance(taps, lpips_taps(pred))[0])

@@ -121,8 +121,12 @@ def _msssim_input(grey: np.ndarray) -> np.ndarray:
     return (grey * 255).astype(np.uint8)
 
 
-def score_grey_maps(ref_maps: dict, pred_maps: dict) -> dict:
-    """The eight components from {map name: float grey image as the metric reads it}."""
+def score_grey_maps(ref_maps: dict, pred_maps: dict, ref_taps: dict | None = None) -> dict:
+    """The eight components from {map name: float grey image as the metric reads it}.
+
+    ``ref_taps``: {map name: :func:`octcl._lpips.lpips_taps` of the reference map}, for a reference scored
+    against many predictions (the same components, in less time).
+    """
     from ._lpips import lpips_distance
     from ._msssim import msssim_exact
 
@@ -132,7 +136,8 @@ def score_grey_maps(ref_maps: dict, pred_maps: dict) -> dict:
             _msssim_input(ref_maps[name]), _msssim_input(pred_maps[name])
         )
     for name in MAP_NAMES:
-        components[f"one_minus_lpips_{name}"] = 1.0 - lpips_distance(ref_maps[name], pred_maps[name])
+        taps = None if ref_taps is None else ref_taps[name]
+        components[f"one_minus_lpips_{name}"] = 1.0 - lpips_distance(ref_maps[name], pred_maps[name], taps)
     return components
 
 

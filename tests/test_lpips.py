@@ -19,6 +19,7 @@ from octcl._lpips import (
     fetch_weights,
     lpips_distance,
     lpips_network,
+    lpips_taps,
 )
 from octcl.scorer import MAP_NAMES
 
@@ -62,6 +63,18 @@ def test_module_call_equals_distance(lpips_weights, official_uniform_maps):
     )
     # Batched convolutions may sum in another order: float32 rounding only.
     np.testing.assert_allclose(batch.detach().numpy(), distances, rtol=0, atol=1e-6)
+
+
+def test_a_reference_taken_once_gives_the_same_distances(lpips_weights, official_uniform_maps):
+    """The reference's taps computed once (lpips_taps) and reused: each distance to the last bit of the
+    network's own call, and to the official value (the test above)."""
+    ref_maps, pred_maps = official_uniform_maps
+    network = lpips_network()
+    for name in MAP_NAMES:
+        taps = lpips_taps(ref_maps[name])
+        direct = network(torch.from_numpy(ref_maps[name]), torch.from_numpy(pred_maps[name])).item()
+        assert lpips_distance(ref_maps[name], pred_maps[name], taps) == direct, name
+        assert lpips_distance(ref_maps[name], ref_maps[name], taps) == 0.0
 
 
 def test_distance_is_the_same_at_every_thread_count(lpips_weights, official_uniform_maps):
