@@ -13,18 +13,24 @@ A round: with g = ∂loss/∂D at the display D(a) of the aim a (each level at
 the centre of its display interval), the change of loss from moving pixel
 p to its other side a'_p is predicted as g_p·(D(a'_p) − D(a_p)); the
 ``batch`` pixels of most negative prediction move together, and the move
-is kept only if the exact score of the new levels is higher and the field
-can render them (a short hinge fit, :func:`octcl.host.stage1.hinge.fit_levels`,
-puts every pixel at its new level); a moved pixel is not moved again. The score is
-not additive over pixels (MS-SSIM and LPIPS see neighbourhoods, and the
-speckle-contrast maps the local spread), so the prediction holds for a few
-pixels at a time: the search starts at :data:`FIRST_BATCH`, a kept batch
-stays the same size and a rejected one halves; a
-single pixel whose move was rejected is not proposed again until a move is
-kept (the gradient is that of the same aim until then), and the search stops
-after :data:`PATIENCE` rejections of a single pixel in a row. On orange.png
-four rounds took the score from the error-diffused image's 0.999895 to
-0.999906 (``scripts/bench_invert.py``, docs/benchmarks.md, 0.6.0).
+is kept only if the exact score of the new levels is higher; a moved pixel
+is not moved again. The score is not additive over pixels (MS-SSIM and
+LPIPS see neighbourhoods, and the speckle-contrast maps the local spread),
+so the prediction holds for a few pixels at a time: the search starts at
+:data:`FIRST_BATCH`, a kept batch stays the same size and a rejected one
+halves; a single pixel whose move was rejected is not proposed again until
+a move is kept (the gradient is that of the same aim until then), and the
+search stops after :data:`PATIENCE` rejections of a single pixel in a row.
+On orange.png four rounds took the score from the error-diffused image's
+0.999895 to 0.999906 (``scripts/bench_invert.py``, docs/benchmarks.md,
+0.6.0); the first two rounds' moves (16 pixels each) gained 8.0e−6 and
+3.2e−6, the next two were rejected (``scripts/bench_aim.py``).
+
+The rounds judge levels only: the field follows the aim the search ends
+at once, after the last round (:meth:`octcl.host.stage1.solve.FieldSolve.reach`),
+and an earlier kept aim where it cannot. A hinge fit after each kept move
+took 60–80 L-BFGS iterations (0.6–1.4 s on two cores, orange.png) where
+projections then a hinge fit take 20 and 10 (0.2 s) once.
 
 Only unwritable pixels move: a writable pixel's own level is the best side
 there is. A target the scanner could have written has none, and the search
@@ -104,32 +110,26 @@ class AimSearch:
         proposed.flat[picks] = other.flat[picks]
         return proposed, picks
 
-    def step(self, aim: np.ndarray, aim_score: float, reach=None) -> tuple[np.ndarray, float, object]:
-        """One round from ``aim`` (whose exact score is ``aim_score``).
+    def step(self, aim: np.ndarray, aim_score: float) -> tuple[np.ndarray, float]:
+        """One round from ``aim`` (whose exact score is ``aim_score``): the aim kept and its score.
 
-        ``reach(levels)`` returns a field that renders ``levels`` exactly,
-        or None where it cannot: a move that gains is kept only where the
-        field can follow it. Returns the aim kept, its score, and the field
-        ``reach`` gave for it (None where the aim did not move).
+        The aim kept is the proposal where its exact score is higher, else ``aim`` itself.
         """
         proposed, picks = self.proposal(aim)
         if not picks.size:  # nothing predicted to gain
             self.batch, self.rejections = 1, PATIENCE
-            return aim, aim_score, None
+            return aim, aim_score
         proposed_score = float(self.score(proposed))
-        reached = None
         if proposed_score > aim_score:
-            reached = reach(proposed) if reach is not None else True
-        if reached is not None:
             self.rejections = 0
             self._rejected[:] = False
             self._settled[picks] = True  # a moved pixel is decided: the next gradient would often move it back
-            return proposed, proposed_score, reached
+            return proposed, proposed_score
         if self.batch == 1:
             self.rejections += 1
             self._rejected[picks] = True
         self.batch = max(1, self.batch // 2)
-        return aim, aim_score, None
+        return aim, aim_score
 
 
 __all__ = ["AimSearch", "FIRST_BATCH", "PATIENCE", "SCORE_WEIGHTS"]

@@ -99,3 +99,73 @@ def test_the_aim_step_needs_a_score_and_a_field_at_its_aim(small_levels):
 
     solve = FieldSolve(plain, plain, NumpyBackend(SMALL, threads=1), score=no_score).run(project(2) + aim(3))
     assert solve.best_identical < 1.0 and solve.history[-1].name == "aim" and solve.history[-1].iterations == 0
+
+
+class _KeptMoves:
+    """An aim search whose rounds keep the given aims in turn (the search itself: tests/stage1/test_aim.py)."""
+
+    def __init__(self, aims):
+        self.aims, self.done = list(aims), False
+
+    def step(self, aim, score):
+        kept = self.aims.pop(0)
+        self.done = not self.aims
+        return kept, score + 1.0
+
+
+def _moved_aims(levels, count):
+    """``count`` aims, each moving 3 more mid-grey pixels of ``levels`` one writable level up."""
+    from octcl.host.stage1.ceiling import WRITABLE
+
+    writable = np.flatnonzero(WRITABLE)
+    up = {int(level): int(writable[np.searchsorted(writable, level, side="right")]) for level in writable[:-1]}
+    candidates = np.flatnonzero((levels > 100) & (levels < 200))
+    aims, aim = [], levels.copy()
+    for round_ in range(count):
+        for pixel in candidates[3 * round_:3 * round_ + 3]:
+            aim.flat[pixel] = up[int(aim.flat[pixel])]
+        aims.append(aim.copy())
+    return aims
+
+
+def test_the_field_follows_the_last_aim_the_rounds_kept(small_levels):
+    from octcl.host.stage1.solve import aim
+
+    solve = FieldSolve(small_levels, small_levels, NumpyBackend(SMALL, threads=1), score=lambda levels: 0.0)
+    solve.run(project(60) + hinge(200))
+    assert solve.best_identical == 1.0
+    moves = _moved_aims(small_levels, 2)
+    solve.aim_search = _KeptMoves(moves)
+    solve.run(FieldSchedule((aim(5),)))
+    assert solve.history[-1].iterations == 2
+    np.testing.assert_array_equal(solve.aim, moves[-1])
+    assert solve.share_at_aim(solve.field) == solve.best_identical == 1.0
+
+
+def test_where_the_field_cannot_follow_the_last_aim_an_earlier_one_is_kept(small_levels, monkeypatch):
+    from octcl.host.stage1.solve import aim
+
+    solve = FieldSolve(small_levels, small_levels, NumpyBackend(SMALL, threads=1), score=lambda levels: 0.0)
+    solve.run(project(60) + hinge(200))
+    moves = _moved_aims(small_levels, 3)
+    solve.aim_search = _KeptMoves(moves)
+    follows = solve.reach
+    tried = []
+
+    def reach_all_but_the_last(levels, field):
+        tried.append(levels)
+        return None if np.array_equal(levels, moves[-1]) else follows(levels, field)
+
+    monkeypatch.setattr(solve, "reach", reach_all_but_the_last)
+    solve.run(FieldSchedule((aim(5),)))
+    assert len(tried) == 2
+    np.testing.assert_array_equal(solve.aim, moves[1])
+    assert solve.share_at_aim(solve.field) == 1.0
+    # None reached: the aim and the field stay where the rounds started.
+    start_field = solve.field.copy()
+    start_aim = solve.aim.copy()
+    solve.aim_search = _KeptMoves(_moved_aims(start_aim, 2))
+    monkeypatch.setattr(solve, "reach", lambda levels, field: None)
+    solve.run(FieldSchedule((aim(5),)))
+    np.testing.assert_array_equal(solve.aim, start_aim)
+    np.testing.assert_array_equal(solve.field, start_field)
