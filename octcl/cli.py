@@ -184,9 +184,12 @@ def _invert_lines(result: dict) -> list[str]:
         ending += f"; fell after step{'s' if len(result['falls']) > 1 else ''} " + \
             ", ".join(map(str, result["falls"])) + " and went back to the best phantom"
     threads = result["threads"] if result["threads"] is not None else "chosen by timing"
-    return [f"{result['output']}: {result['scatterers']:,} scatterers, score {result['score']:.5f} "
-            f"(initial_score after stages 1-2: {result['initial_score']:.5f})",
-            *_format_table(result["components"]),
+    scored = [f"{result['output']}: {result['scatterers']:,} scatterers, score {result['score']:.5f} "
+              f"(initial_score after stages 1-2: {result['initial_score']:.5f})",
+              *_format_table(result["components"])] if result["score"] is not None else [
+        f"{result['output']}: {result['scatterers']:,} scatterers, score left out: computing it (torch, the LPIPS "
+        "network, one score) would have ended past the time budget (`octcl render`, then `octcl score`, give it)"]
+    return [*scored,
             f"iterations: {result['iterations']} ({ending}); regime {result['regime']}, "
             f"field_iterations {result['field_iterations']}; "
             f"seed {result['seed']}; threads {threads}",
@@ -333,6 +336,9 @@ def _cmd_invert(args) -> int:
         human += ["medians:", *_format_table(summary["medians"]),
                   f"score (global, mean of the 8 medians): {summary['score']:.5f}; "
                   f"median_seconds {format_seconds(summary['median_seconds'])}"]
+    if summary.get("unscored"):
+        human.append(f"{summary['unscored']} scans have a phantom but no score: their time budget left no time to "
+                     "score them; the medians leave them out")
     out = Path(args.out)
     human.append(f"summary: {out / 'summary.csv'}, {out / 'summary.json'}; report: {out / 'report.html'}")
     return _finish(args, summary, human)

@@ -244,7 +244,8 @@ def main(argv=None) -> int:
                              "written_s": report["seconds"]["written"],
                              **{f"seconds_to_{label}": value for label, value in reached.items()},
                              "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
-                print(f"{run}: {components['mean']:.6f} (stages 1-2: {report['initial_score']:.6f}), "
+                initial = "left out" if report["initial_score"] is None else f"{report['initial_score']:.6f}"
+                print(f"{run}: {components['mean']:.6f} (stages 1-2: {initial}), "
                       f"{report['iterations']} iterations ({report.get('stop_reason')}), "
                       f"falls after steps [{rows[run]['falls']}], "
                       f"{report['seconds']['total']:.0f} s, {report['peak_memory_mib']:.0f} MiB", flush=True)

@@ -31,7 +31,8 @@ JSON_KEYS = {
                "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "stop_reason", "falls", "seed", "regime", "field_iterations",
                "fixed_schedule", "threads", "reproduce", "reproducible", "ceiling", "exact_share", "avoidable_share",
                "report"},
-    "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "octcl_version", "time_budget_s",
+    "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "unscored", "octcl_version",
+                         "time_budget_s",
                          "seed", "options", "cluster", "wall_s"},
     "weights": {"weights", "ok"},
     "devices": {"id", "device", "builds", "build_error", "default", "reason"},
@@ -280,6 +281,20 @@ def test_invert_summary_says_where_the_main_run_fell():
     result["falls"] = [20, 40]
     assert "(fixed schedule, schedule completed; fell after steps 20, 40 and went back to the best phantom)" in \
         "\n".join(_invert_lines(result))
+
+
+def test_invert_summary_says_when_the_score_was_left_out():
+    from octcl.cli import _invert_lines
+
+    result = {"output": "p.txt", "scatterers": 10, "score": None, "initial_score": None, "components": None,
+              "iterations": 0, "fixed_schedule": False, "stop_reason": "ceiling", "falls": [], "field_iterations": 150,
+              "regime": "linear", "seed": 0, "threads": None, "reproduce": "--seed 0", "reproducible": True,
+              "checkpoints": 1, "peak_memory_mib": 100.0, "seconds": {"total": 2.6}, "exact_share": 0.9,
+              "avoidable_share": 0.0,
+              "ceiling": {"writable_share": 0.9, "nearest_score": None, "diffused_score": None}}
+    lines = _invert_lines(result)
+    assert lines[0].startswith("p.txt: 10 scatterers, score left out: computing it")
+    assert "past the time budget" in lines[0] and not any("msssim" in line.lower() for line in lines)
 
 
 def test_entry_point_runs_as_a_program(tmp_path):

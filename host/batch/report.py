@@ -26,6 +26,7 @@ import csv
 import html
 import io
 import json
+import math
 
 import numpy as np
 
@@ -125,8 +126,13 @@ def summarise(rows: dict[str, dict], settings: dict, cluster: str | None, wall_s
                           for status in (*DONE, "failed", "pending")},
                **settings, "cluster": cluster, "wall_s": wall_s}
     if done:
-        medians, score = global_score(done)
-        summary.update(medians=medians, score=score, median_seconds=float(np.median([row["seconds"] for row in done])))
+        summary["median_seconds"] = float(np.median([row["seconds"] for row in done]))
+    # A scan whose score a time budget left out (its ``mean`` None) has a phantom but no components.
+    scored = [row for row in done if row.get("mean") is not None]
+    summary["unscored"] = len(done) - len(scored)
+    if scored:
+        medians, score = global_score(scored)
+        summary.update(medians=medians, score=score)
     return summary
 
 
@@ -206,7 +212,10 @@ def report_html(summary: dict, images: dict[str, tuple[bytes, bytes]]) -> str:
     """The page: global score, medians, the sortable scans table, and ``{name: (panel, plot)}`` images."""
     rows = summary["scans"]
     counts = ", ".join(f"{n} {status}" for status, n in summary["counts"].items() if n)
-    score = f"{summary['score']:.5f}" if "score" in summary else "none (no scan inverted)"
+    score = f"{summary['score']:.5f}" if "score" in summary else "none (no scan inverted and scored)"
+    if summary.get("unscored"):
+        score += (f" (over the scored scans; {summary['unscored']} left out: their time budget left no time to "
+                  "score them)")
     parts = [
         "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
         "<title>octcl batch report</title>", f"<style>{_STYLE}</style></head><body>",
@@ -230,7 +239,8 @@ def report_html(summary: dict, images: dict[str, tuple[bytes, bytes]]) -> str:
                      "NAME.panel.png and NAME.score.png.</p>")
     for name, (panel, plot) in images.items():
         row = rows[name]
-        parts += [f'<section id="{html.escape(_anchor(name))}"><h2>{html.escape(name)}: {row["mean"]:.5f}</h2>',
+        shown_score = "score left out" if row["mean"] is None else f"{row['mean']:.5f}"
+        parts += [f'<section id="{html.escape(_anchor(name))}"><h2>{html.escape(name)}: {shown_score}</h2>',
                   f'<p class="meta">{row["status"]}, {row["seconds"]:.0f} s, peak memory '
                   f'{row["peak_memory_mib"]:.0f} MiB</p>',
                   _image(panel, f"{name}: target and rendering, scan, OAC, SC and RSC"),
@@ -254,7 +264,8 @@ def write_reports(out_dir, rows: dict[str, dict], settings: dict, cluster: str |
         handle.write(_csv_text(rows))
     with atomic_write(out_dir / "summary.json", "w") as handle:
         json.dump(summary, handle, indent=1)
-    shown = sorted((row for row in rows.values() if row["status"] in DONE), key=lambda row: row["mean"])
+    shown = sorted((row for row in rows.values() if row["status"] in DONE),
+                   key=lambda row: math.inf if row["mean"] is None else row["mean"])
     embedded = {}
     for row in shown[:REPORT_PANELS]:
         pair = images(row["scan"])

@@ -209,7 +209,8 @@ def connect(scheduler: str | None = None, workers: int | None = None, threads_pe
 def _row(name: str, status: str, report: dict) -> dict:
     """A summary row from a scan's report."""
     record = report.get("batch", {})
-    return {"scan": name, "status": status, **{c: report["components"][c] for c in (*COMPONENTS, "mean")},
+    components = report["components"] or {}  # None: a time budget left no time to score it
+    return {"scan": name, "status": status, **{c: components.get(c) for c in (*COMPONENTS, "mean")},
             "seconds": report["seconds"]["total"], "peak_memory_mib": report["peak_memory_mib"],
             "cpu_s": record.get("cpu_s"), "worker": record.get("worker"), "error": None}
 

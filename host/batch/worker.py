@@ -93,7 +93,8 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
         report = json.loads(report_path.read_text(encoding="utf-8"))
         rendering = render(Phantom.load(phantom_path, config, y_limit_um=CONTRACT_Y_LIMIT_UM), config)
     report["target"] = name
-    title = f"{name}: score {result.score:.5f} after {result.seconds['total']:.0f} s"
+    score = "left out (time budget)" if result.score is None else f"{result.score:.5f}"
+    title = f"{name}: score {score} after {result.seconds['total']:.0f} s"
     return {"name": name, "phantom": phantom, "report": report,
             "panel": comparison_panel(target, rendering.levels, title),
             "plot": score_plot({name: report["trace"]}, name),

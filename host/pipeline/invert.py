@@ -127,8 +127,9 @@ FINAL_RESERVE_FRACTION = 0.15
 #: (deadline mode leaves out a ceiling score that would eat into them).
 EXIT_RESERVE_S = 0.25
 #: Seconds of a run's first exact score, before one has been timed: torch's import, the LPIPS network and
-#: the target's maps, one score (2–3 s on two cores; :data:`octcl.host.stage1.solve.AIM_FIRST_ROUND_S`).
-SCORE_FIRST_S = 2.5
+#: the target's maps and features, one score (1.0 + 0.18 + 0.25 s on orange.png on two cores,
+#: ``scripts/bench_aim.py``), with a margin of a quarter.
+SCORE_FIRST_S = 1.8
 
 
 @dataclass
@@ -141,12 +142,14 @@ class InvertResult:
         The target's name: its path, or the ``name`` given with an array.
     output : str
         The phantom file written.
-    score : float
-        Mean of the eight exact components of the written phantom's rendering.
-    components : dict
-        Those eight components.
-    initial_score : float
-        The exact score after stages 1–2.
+    score : float or None
+        Mean of the eight exact components of the written phantom's rendering; None where a time budget
+        left no time to compute it (deadline mode: stage 3 leaves out a first score that would end past
+        its deadline, :meth:`octcl.host.stage3.refine` ``score_input``).
+    components : dict or None
+        Those eight components (None as ``score``).
+    initial_score : float or None
+        The exact score after stages 1–2 (None as ``score``).
     scatterers : int
         Rows in the output.
     iterations : int
@@ -203,9 +206,9 @@ class InvertResult:
 
     target: str
     output: str
-    score: float
-    components: dict
-    initial_score: float
+    score: float | None
+    components: dict | None
+    initial_score: float | None
     scatterers: int
     iterations: int
     seconds: dict
@@ -814,7 +817,8 @@ class _Run:
                       kernels=kernels, config=self.config, progress=self.tell.refine, exact_score=self.exact_score,
                       on_improvement=lambda improved, components: self.writer.offer(improved),
                       ceiling=self.ceiling.ceiling if fixed else None, threads=self.plan.threads,
-                      target_score=target_score, aim=first.aim)
+                      target_score=target_score, aim=first.aim,
+                      score_by=None if fixed else self.started + self.time_budget_s - EXIT_RESERVE_S)
 
     def ceiling_score(self, image) -> float | None:
         """The exact score of one of the ceiling's images; in deadline mode None where computing it would end
@@ -844,8 +848,9 @@ class _Run:
         levels, rendered = self.exact_score.levels, result.levels
         ceiling = measure_ceiling(levels, self.ceiling_score)
         outcome = InvertResult(
-            target=name, output=str(self.output_path), score=result.components["mean"],
-            components=result.components, initial_score=result.initial_components["mean"],
+            target=name, output=str(self.output_path),
+            score=None if result.components is None else result.components["mean"], components=result.components,
+            initial_score=None if result.initial_components is None else result.initial_components["mean"],
             scatterers=len(result.phantom), iterations=result.iterations, seconds=seconds,
             checkpoints=writer.writes, peak_memory_mib=peak_memory_mib(),
             stopped_by_deadline=result.stopped_by_deadline, stop_reason=result.stop_reason,

@@ -141,14 +141,14 @@ class Checkpoint:
 
     z_um: np.ndarray
     log_energy: np.ndarray
-    components: dict
+    components: dict | None  # None: the input, its score left out (:meth:`_Run.score_input`)
     stage: str
     iteration: int
     levels: np.ndarray
 
     @property
     def score(self) -> float:
-        return self.components["mean"]
+        return -math.inf if self.components is None else self.components["mean"]
 
 
 @dataclass(frozen=True)
@@ -185,10 +185,12 @@ class RefineResult:
     ----------
     phantom : Phantom
         The best phantom scored (the input's x and y, refined z and E).
-    components : dict
-        Its eight exact components and their ``mean``.
-    initial_components : dict
-        Those of the input phantom.
+    components : dict or None
+        Its eight exact components and their ``mean``; None where the
+        deadline left no time to score the input and nothing else ran
+        (:meth:`_Run.score_input`).
+    initial_components : dict or None
+        Those of the input phantom (None as above).
     iterations : int
         Adam steps taken, restarts included.
     trace : list of dict
@@ -440,7 +442,8 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
            deadline: float | None = None, kernels=None, config: ScannerConfig = DEFAULT_CONFIG,
            progress=None, on_improvement=None, exact_score: "ExactScore | None" = None,
            ceiling: float | None = None, threads: int | None = None,
-           target_score: float | None = None, aim: np.ndarray | None = None) -> RefineResult:
+           target_score: float | None = None, aim: np.ndarray | None = None,
+           score_by: float | None = None) -> RefineResult:
     """Refine depths and energies of ``phantom`` towards the target scan.
 
     Parameters
@@ -455,9 +458,9 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     deadline : float, optional
         ``time.monotonic()`` value by which :func:`refine` returns. An
         iteration or exact evaluation starts only if its last measured
-        duration ends before it; the input phantom's own evaluation always
-        runs. Without one, the schedule runs to its end and no decision is
-        taken from the clock.
+        duration ends before it; the input phantom's own evaluation runs
+        unless ``score_by`` leaves it out. Without one, the schedule runs to
+        its end and no decision is taken from the clock.
     kernels : octcl.device.scanner.ScannerKernels, optional
         Reuse compiled kernels (built for ``config`` if not given).
     config : ScannerConfig
@@ -488,6 +491,14 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
         (``stop_reason`` ``ceiling``): every pixel the scanner can write is
         then at the target's level, and each unwritable one on the side
         chosen for it.
+    score_by : float, optional
+        ``time.monotonic()`` value by which the input phantom's exact score
+        must end (default: ``deadline``): where ``exact_score`` tells its
+        cost (``exact_score.cost_s(levels)``, the pipeline's does) and the
+        score would end later, it is left out and nothing else runs
+        (the result's ``components`` None). A caller whose deadline keeps
+        time for a last write that will not come (a phantom at its aim)
+        passes a later one.
 
     Returns
     -------
@@ -510,7 +521,7 @@ def refine(phantom: Phantom, target: np.ndarray, schedule: RefineSchedule = Refi
     """
     started = time.monotonic()
     plan = _Plan.checked(target, schedule, deadline, kernels, config, progress, on_improvement, exact_score,
-                         ceiling, threads, target_score, aim)
+                         ceiling, threads, target_score, aim, deadline if score_by is None else score_by)
     run = _Run(plan, phantom, started)
     with _callers_torch_threads():
         run.score_input()
@@ -546,12 +557,13 @@ class _Plan:
     threads: int | None            # None: chosen by timing (:class:`_ThreadChooser`)
     target_score: float | None
     aim: np.ndarray | None
+    score_by: float | None         # the input's score ends by then, or is left out
     progress: object               # callable or None
     on_improvement: object         # callable or None
 
     @classmethod
     def checked(cls, target, schedule, deadline, kernels, config, progress, on_improvement, exact_score, ceiling,
-                threads, target_score, aim) -> _Plan:
+                threads, target_score, aim, score_by) -> _Plan:
         """The arguments checked (:func:`refine`'s Raises) before the kernels and the scorer are built."""
         check_target_score(target_score)
         if kernels is None:
@@ -563,7 +575,7 @@ class _Plan:
 
             exact_score = ExactScore(target)
         return cls(schedule, target_scan(target), kernels, exact_score, config, deadline, ceiling, threads,
-                   target_score, aim, progress, on_improvement)
+                   target_score, aim, score_by, progress, on_improvement)
 
 
 class _Run:
@@ -628,12 +640,28 @@ class _Run:
             self.stop_reason = "target score"
 
     def score_input(self) -> None:
-        """The input phantom's exact score: the first checkpoint, whatever the deadline."""
+        """The input phantom's exact score: the first checkpoint.
+
+        Where the score's ``cost_s(levels)`` (a scorer that can tell, such
+        as the pipeline's) would end past ``score_by``, the score is left
+        out and nothing else runs: stop_reason ``ceiling`` where the input
+        renders the aimed levels, else ``deadline``. A time budget is the
+        process's (``--time-budget``): the first score of a run imports
+        torch and builds the LPIPS network, 1.4 s on two cores.
+        """
         self.refiner.threads.before_call()  # exact scores, the first included, at the loss's thread count
         rendering = self.refiner.render(self.z_um, self.log_energy, for_adjoint=False)
+        at_aim = self.plan.aim is not None and np.array_equal(rendering.levels, self.plan.aim)
+        cost_s = getattr(self.plan.exact_score, "cost_s", None)
+        if self.plan.score_by is not None and cost_s is not None and \
+                time.monotonic() + cost_s(rendering.levels) > self.plan.score_by:
+            self.best = Checkpoint(self.z_um.copy(), self.log_energy.copy(), None, "initial", 0, rendering.levels)
+            self.stop_reason = "ceiling" if at_aim else "deadline"
+            self.log("initial", 0)
+            return
         self.initial = self.refiner.score(rendering)
         self.best = Checkpoint(self.z_um.copy(), self.log_energy.copy(), self.initial, "initial", 0, rendering.levels)
-        if self.plan.aim is not None and np.array_equal(rendering.levels, self.plan.aim):
+        if at_aim:
             self.stop_reason = "ceiling"
         self.last_score = (self.initial["mean"], time.monotonic())
         self.log("initial", 0, self.initial["mean"], now=self.last_score[1])

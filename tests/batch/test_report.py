@@ -1,6 +1,7 @@
 """A batch's report: summary.csv and summary.json agree, report.html's table is summary.csv's, images inline."""
 
 import base64
+import html
 import io
 import json
 import re
@@ -58,6 +59,22 @@ def test_summary_files_and_html_table_agree(tmp_path, report_table):
     table = report_table(html)
     assert table == [{column: row[column] or None for column in COLUMNS} for row in csv_rows]
     assert f"{summary['score']:.5f}" in html
+
+
+def test_a_scan_whose_score_was_left_out_is_listed_and_left_out_of_the_medians(tmp_path, report_table):
+    """A scan inverted under a budget too short to score it (its components None): its row stays, the medians
+    and global score are those of the scored scans, and the summary and page say how many were left out."""
+    rows = make_rows(5)
+    unscored = next(name for name, row in rows.items() if row["status"] == "inverted")
+    rows[unscored].update(dict.fromkeys((*COMPONENTS, "mean")))
+    summary = write_reports(tmp_path, rows, SETTINGS, "local cluster", 12.0, pictures)
+    scored = [row for row in rows.values() if row["status"] in ("inverted", "resumed") and row["mean"] is not None]
+    assert len(scored) == 4 and summary["unscored"] == 1
+    assert summary["medians"] == {c: float(np.median([row[c] for row in scored])) for c in COMPONENTS}
+    page = (tmp_path / "report.html").read_text()
+    assert "1 left out: their time budget left no time to score them" in page
+    assert f"{html.escape(unscored)}: score left out</h2>" in page
+    assert [row for row in report_table(page) if row["scan"] == unscored][0]["mean"] is None
 
 
 def test_html_is_self_contained_with_every_panel_inline(tmp_path, monkeypatch):

@@ -362,6 +362,43 @@ def test_a_start_at_its_aimed_levels_is_not_refined(stage2_phantom, layers_targe
     assert runs.iterations == 2 and runs.stop_reason == "schedule"
 
 
+class _CostlyScore:
+    """An exact score that says a call costs ``seconds``; it answers with ``score`` (without one it fails)."""
+
+    def __init__(self, seconds, score=None):
+        self.seconds, self.score = seconds, score
+
+    def cost_s(self, levels):
+        return self.seconds
+
+    def __call__(self, levels):
+        if self.score is None:
+            raise AssertionError("a score left out was computed")
+        return self.score(levels)
+
+
+def test_a_score_that_would_end_past_score_by_is_left_out(stage2_phantom, layers_target):
+    """``score_by``: where the scorer's own cost ends past it, nothing is scored, nothing refined, and the
+    result says so (components None); at its aim the reason is ``ceiling``, elsewhere ``deadline``."""
+    from octcl.render import render
+
+    schedule = RefineSchedule(phases=(Phase(2, 0.01, 0.02, lpips=False),), restarts=(), score_every=2)
+    rendered = render(Phantom(saved_precision(stage2_phantom.x_um), saved_precision(stage2_phantom.y_um),
+                              saved_precision(stage2_phantom.z_um), saved_precision(stage2_phantom.energy_pct))).levels
+    for aim, reason in ((rendered, "ceiling"), (None, "deadline")):
+        result = refine(stage2_phantom, layers_target, schedule, threads=1, aim=aim, exact_score=_CostlyScore(5.0),
+                        deadline=time.monotonic() + 600, score_by=time.monotonic() + 1.0)
+        assert result.components is None and result.initial_components is None
+        assert result.stop_reason == reason and result.iterations == 0
+        np.testing.assert_array_equal(result.levels, rendered)
+        np.testing.assert_array_equal(result.phantom.z_um, saved_precision(stage2_phantom.z_um))
+    # The same cost within score_by is computed.
+    scored = refine(stage2_phantom, layers_target, schedule, threads=1, aim=rendered,
+                    exact_score=_CostlyScore(5.0, ExactScore(layers_target)),
+                    deadline=time.monotonic() + 600, score_by=time.monotonic() + 600)
+    assert scored.components is not None and scored.stop_reason == "ceiling"
+
+
 def test_schedule_checks():
     with pytest.raises(ValueError, match="iterations"):
         Phase(-1, 0.01, 0.01)
