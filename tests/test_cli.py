@@ -166,7 +166,7 @@ def test_bad_input_exits_2_with_one_line_reason(tmp_path, capsys, argv, message)
     try:
         status, out, err = run(capsys, *[a.format(tmp=tmp_path) for a in argv])
     except SystemExit as exit_info:  # argparse's own refusals
-        status, (out, err) = exit_info.code, capsys.readouterr()
+        status, (_, err) = exit_info.code, capsys.readouterr()
     assert status == 2
     assert message.format(tmp=tmp_path) in err and err.count("\n") == 1 and err.startswith("octcl")
 

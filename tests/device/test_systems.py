@@ -62,10 +62,10 @@ def test_each_platform_gets_the_opencl_runtimes_that_have_wheels_for_it(python):
     assert "pocl-binary-distribution" in names["manylinux_2_28_x86_64"]
     assert {"intel-opencl-rt", "intel-cmplr-lib-rt"} <= names["manylinux_2_28_x86_64"]  # the extra "intel"
     assert {"intel-opencl-rt", "intel-cmplr-lib-rt"} <= names["win_amd64"]
-    for platform in ("win_amd64", "macosx_12_0_arm64", "macosx_14_0_arm64", "manylinux_2_28_aarch64"):
-        assert "pocl-binary-distribution" not in names[platform], platform
-    for platform in ("macosx_12_0_arm64", "macosx_14_0_arm64", "manylinux_2_28_aarch64"):
-        assert not names[platform] & {"intel-opencl-rt", "intel-cmplr-lib-rt"}, platform
+    for system in ("win_amd64", "macosx_12_0_arm64", "macosx_14_0_arm64", "manylinux_2_28_aarch64"):
+        assert "pocl-binary-distribution" not in names[system], system
+    for system in ("macosx_12_0_arm64", "macosx_14_0_arm64", "manylinux_2_28_aarch64"):
+        assert not names[system] & {"intel-opencl-rt", "intel-cmplr-lib-rt"}, system
 
 
 def test_intels_runtime_is_a_default_on_windows_and_an_extra_on_linux():
