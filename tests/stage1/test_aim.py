@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from octcl._io import GREY_LUT
-from octcl.host.stage1.aim import FIRST_BATCH, PATIENCE, AimSearch
+from octcl.host.stage1.aim import FIRST_BATCH, PATIENCE, SPACING_PX, AimSearch
 from octcl.host.stage1.ceiling import WRITABLE, error_diffused
 
 
@@ -40,6 +40,9 @@ def test_a_move_that_gains_is_kept(target):
     assert 0 < changed.sum() <= FIRST_BATCH
     assert not WRITABLE[target[changed]].any()  # only unwritable pixels move, each to its other side
     assert np.array_equal(moved[changed].astype(int) + aim[changed], 2 * target[changed].astype(int))
+    rows, columns = np.nonzero(changed)  # pixels a round moves are apart: their effects on the score add up
+    apart = np.maximum(abs(rows[:, None] - rows[None]), abs(columns[:, None] - columns[None]))
+    assert (apart[~np.eye(rows.size, dtype=bool)] > SPACING_PX).all()
     # A moved pixel is decided: the next move leaves it where it is.
     again, _ = search.step(moved, score)
     assert np.array_equal(again[changed], moved[changed]) and not np.array_equal(again, moved)
@@ -56,9 +59,19 @@ def test_a_move_that_does_not_gain_is_refused(target):
 def test_a_search_that_never_gains_halves_its_batch_then_stops(target):
     search = AimSearch(target, lambda levels: 0.0)
     aim = error_diffused(target)
-    rounds = 0
+    batches = []
     while not search.done:
+        batches.append(search.batch)
         kept, _ = search.step(aim, 1.0)
-        assert np.array_equal(kept, aim)
+        assert kept is aim
+    assert batches == [FIRST_BATCH // 2**k for k in range(PATIENCE)]
+
+
+def test_a_kept_move_starts_the_patience_again(target):
+    scores = iter([0.0, 2.0, 0.0, 0.0, 0.0])  # rejected, kept, then rejected until it stops
+    search = AimSearch(target, lambda levels: next(scores))
+    aim, score, rounds = error_diffused(target), 1.0, 0
+    while not search.done:
+        aim, score = search.step(aim, score)
         rounds += 1
-    assert search.batch == 1 and rounds == int(np.log2(FIRST_BATCH)) + PATIENCE
+    assert rounds == 1 + 1 + PATIENCE and score == 2.0
