@@ -154,6 +154,76 @@ def _cmd_phantom(args) -> int:
                     f"in {format_seconds(seconds)}"])
 
 
+def _cmd_phantom_stats(args) -> int:
+    from .tissue import attenuation_map, tissue_figures, transmission_map
+
+    started = time.monotonic()
+    config = _config(args)
+    phantom = Phantom.load(args.phantom, config)
+    if args.target:
+        from .host.pipeline.target import read_target, target_scan
+        from .host.stage1.levels import target_levels
+
+        levels = target_levels(target_scan(read_target(args.target)), config)
+    else:
+        from .render import render
+
+        levels = render(phantom, config).levels
+    figures = tissue_figures(phantom, levels, config)
+    payload = {"phantom": str(args.phantom), "target": args.target, **figures}
+    if args.truth:
+        truth = tissue_figures(Phantom.load(args.truth, config), levels, config)
+        payload["truth"] = {"phantom": str(args.truth), **truth}
+        payload["band_density_ratios"] = [
+            mine / theirs if signal and theirs > 0 else None for mine, theirs, signal in
+            zip(figures["band_densities_pct"], truth["band_densities_pct"], truth["bands_with_signal"])]
+    if args.attenuation_map:
+        _write_attenuation_map(args.attenuation_map, attenuation_map(transmission_map(phantom, config), config),
+                               Path(args.phantom).name)
+    payload["seconds"] = time.monotonic() - started
+    return _finish(args, payload, _phantom_stats_lines(payload))
+
+
+def _phantom_stats_lines(payload: dict) -> list[str]:
+    """Human summary of :func:`_cmd_phantom_stats`'s figures."""
+    energy = payload["energy_pct"]
+    shadow = "no visible tissue" if payload["shadow_db"] is None else f"{payload['shadow_db']:.1f} dB"
+    lines = [f"{payload['phantom']}: {payload['scatterers']:,} scatterers; E (%) p5 {energy['p5']:.3g}, median "
+             f"{energy['p50']:.3g}, p95 {energy['p95']:.3g}, max {energy['max']:.3g}",
+             f"shadow at the bottom of the visible tissue (median over A-scans): {shadow}; median attenuation "
+             f"there {payload['attenuation_per_mm_median'] or 0:.3g} /mm",
+             f"energy density per {payload['band_um']:g} um band (sum of E e^-2y2/w0^2, %): "
+             + ", ".join(f"{value:.3g}{'' if signal else ' (no signal)'}" for value, signal in
+                         zip(payload["band_densities_pct"], payload["bands_with_signal"]))]
+    if "truth" in payload:
+        truth = payload["truth"]
+        lines.append(f"truth {truth['phantom']}: median E {truth['energy_pct']['p50']:.3g} %, shadow "
+                     f"{truth['shadow_db'] if truth['shadow_db'] is None else round(truth['shadow_db'], 1)} dB; "
+                     "band densities / truth's: " + ", ".join(
+                         "-" if ratio is None else f"{ratio:.2f}" for ratio in payload["band_density_ratios"]))
+    return lines
+
+
+def _write_attenuation_map(path, attenuation, title: str) -> None:
+    """µ (mm⁻¹), an (Nz, Nx) array, as a PNG image with a colour bar (matplotlib)."""
+    import matplotlib
+    import numpy as np
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from ._io import atomic_write
+
+    figure = Figure(figsize=(8, 4.2), dpi=100, layout="constrained")
+    axes = figure.add_subplot()
+    shown = axes.imshow(attenuation, cmap="magma", vmin=0, vmax=max(float(np.percentile(attenuation, 99)), 1e-3),
+                        aspect="auto")
+    figure.colorbar(shown, ax=axes, label="µ (mm⁻¹), from the phantom's own transmission")
+    axes.set(title=f"{title}: attenuation", xlabel="A-scan", ylabel="depth pixel")
+    with atomic_write(path) as handle:
+        figure.savefig(handle, format="png")
+
+
 def _invert_progress(display: ProgressDisplay):
     """A progress callback for :func:`octcl.host.pipeline.invert.invert` drawing on ``display``."""
     last_stage = None
@@ -201,7 +271,19 @@ def _invert_lines(result: dict) -> list[str]:
             f"{100 * result['ceiling']['writable_share']:.2f} % are at levels the scanner writes, "
             f"{100 * result['avoidable_share']:.2f} % of pixels are writable and off their level; "
             f"the target moved to writable levels scores {_ceiling_score(result['ceiling']['nearest_score'])} "
-            f"(nearest) and {_ceiling_score(result['ceiling']['diffused_score'])} (error-diffused)"]
+            f"(nearest) and {_ceiling_score(result['ceiling']['diffused_score'])} (error-diffused)",
+            *_tissue_lines(result.get("tissue"))]
+
+
+def _tissue_lines(figures) -> list[str]:
+    """The tissue regime's summary of its phantom as tissue (none for the other regimes)."""
+    if figures is None:
+        return []
+    shadow = "no visible tissue" if figures["shadow_db"] is None else f"{figures['shadow_db']:.1f} dB"
+    attenuation = figures["attenuation_per_mm_median"]
+    return [f"as tissue: median E {figures['energy_pct']['p50']:.3g} % (p95 {figures['energy_pct']['p95']:.3g} %), "
+            f"shadow at the bottom of the visible tissue {shadow}, median attenuation there "
+            f"{'-' if attenuation is None else f'{attenuation:.3g}'} /mm (octcl phantom-stats for more)"]
 
 
 def _ceiling_score(value) -> str:
@@ -441,6 +523,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="Configuration.ini")
     p.add_argument("-o", "--output", required=True, help="phantom text file to write")
 
+    p = command("phantom-stats", "a phantom as tissue: energies, the shadow its scatterers cast, attenuation",
+                _cmd_phantom_stats)
+    p.add_argument("phantom", help="phantom text file (x y z E rows)")
+    p.add_argument("--target", help="the B-scan whose visible tissue (levels >= 64) the shadow is read at, and "
+                                     "whose bands with signal count (default: the phantom's own rendering)")
+    p.add_argument("--truth", help="another phantom (the truth it was made from) to compare the figures with")
+    p.add_argument("--attenuation-map", metavar="PNG", help="write the phantom's attenuation map here")
+    p.add_argument("--config", help="Configuration.ini")
+
     p = command("invert", "invert a target B-scan into a phantom, or every scan of a folder tree", _cmd_invert)
     p.add_argument("target", nargs="?", help="target B-scan (256×512): a PNG, or a .npy of its uint8 grey levels")
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
@@ -454,10 +545,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "no decision from the clock, at --threads threads: the same target, seed, N, "
                         "version and device give the same file, byte for byte. Without it the time budget "
                         "decides how far each stage gets (the summary says how to repeat that schedule)")
-    p.add_argument("--regime", choices=("linear", "physical"), default="linear",
+    p.add_argument("--regime", choices=("linear", "physical", "tissue"), default="linear",
                    help="stages 1-2: linear (default): a field whose rendering has the target's levels in "
                         "seconds, decoded exactly into 2 scatterers a pixel at energies too small to shadow; "
-                        "physical: the published pipeline, tissue-like energies, minutes (README)")
+                        "physical: the published pipeline, minutes; tissue: the linear field decoded at tissue "
+                        "scale, its shadowing making the scan's attenuation, then stage 3 with shadowing "
+                        "(README: which to use for what)")
     p.add_argument("--field-iterations", type=int, metavar="M",
                    help="stage 1 Adam steps (default 150 linear, 1500 physical; at most, within its time share, "
                         "without --iterations)")

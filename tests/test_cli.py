@@ -30,7 +30,9 @@ JSON_KEYS = {
     "invert": {"target", "output", "score", "components", "initial_score", "scatterers", "iterations",
                "seconds", "checkpoints", "peak_memory_mib", "stopped_by_deadline", "stop_reason", "falls", "seed", "regime", "field_iterations",
                "fixed_schedule", "threads", "reproduce", "reproducible", "ceiling", "exact_share", "avoidable_share",
-               "report"},
+               "tissue", "report"},
+    "phantom-stats": {"phantom", "target", "scatterers", "energy_pct", "shadow_db", "attenuation_per_mm_median",
+                      "band_um", "band_densities_pct", "bands_with_signal", "seconds"},
     "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "unscored", "octcl_version",
                          "time_budget_s",
                          "seed", "options", "cluster", "wall_s"},
@@ -295,6 +297,22 @@ def test_invert_summary_says_when_the_score_was_left_out():
     lines = _invert_lines(result)
     assert lines[0].startswith("p.txt: 10 scatterers, score left out: computing it")
     assert "past the time budget" in lines[0] and not any("msssim" in line.lower() for line in lines)
+
+
+def test_phantom_stats_reads_a_phantom_as_tissue_against_its_truth(tmp_path, capsys):
+    """Against itself as its truth every band with signal has the ratio 1; the attenuation map is a PNG."""
+    phantom = tmp_path / "skin.txt"
+    Phantom.skin(2).save(phantom)
+    status, out, _ = run(capsys, "phantom-stats", phantom, "--truth", phantom, "--attenuation-map",
+                         tmp_path / "mu.png", "--json")
+    payload = json.loads(out)
+    assert status == 0 and set(payload) == JSON_KEYS["phantom-stats"] | {"truth", "band_density_ratios"}
+    assert payload["shadow_db"] > 10 and payload["energy_pct"]["max"] <= 100
+    ratios = [ratio for ratio, signal in zip(payload["band_density_ratios"], payload["bands_with_signal"]) if signal]
+    assert ratios and all(ratio == 1.0 for ratio in ratios)
+    assert (tmp_path / "mu.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    status, human, _ = run(capsys, "phantom-stats", phantom)
+    assert status == 0 and "shadow at the bottom of the visible tissue" in human
 
 
 def test_entry_point_runs_as_a_program(tmp_path):

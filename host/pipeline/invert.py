@@ -7,7 +7,7 @@
    log-energy through the OpenCL scanner and its adjoint, judged by the
    exact score.
 
-Stages 1–2 come in two regimes (:data:`REGIMES`):
+Stages 1–2 come in three regimes (:data:`REGIMES`):
 
 - ``linear`` (the default), :mod:`octcl.host.stage1.projections`: a schedule of named
   steps (:mod:`octcl.host.stage1.solve`: a display fit, projections onto the
@@ -21,8 +21,13 @@ Stages 1–2 come in two regimes (:data:`REGIMES`):
   (1500 Adam steps on the display, 10–12 s) and
   :func:`octcl.host.stage2.capped.decode_field` (amplitude-capped children at
   random elevations, shadowing ≤ 1e−4 per A-scan); slower and lower
-  scoring, kept to reproduce the published method and for phantoms
-  scaled like tissue.
+  scoring, kept to reproduce the published method.
+- ``tissue``: the linear regime's stage 1, then
+  :func:`octcl.host.stage2.tissue.decode_tissue` (the rows at tissue scale,
+  each divided by the light the rows above leave it, the scale from the
+  light left below the data) and stage 3 with shadowing on (the physical
+  regime's schedule). The result carries the phantom's figures as tissue
+  (:func:`octcl.tissue.tissue_figures`).
 
 Measured on the development set: docs/benchmarks.md ("the linear regime").
 
@@ -46,6 +51,7 @@ ceiling that fails the run loudly.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -74,7 +80,7 @@ from .target import check_target, read_target, target_scan, target_struct_for_me
 #: (``scripts/bench_io.py``; in a background thread, on the same two cores).
 CHECKPOINT_INTERVAL_S = 20.0
 #: Stages 1–2 by name (module docstring), the default first.
-REGIMES = ("linear", "physical")
+REGIMES = ("linear", "physical", "tissue")
 #: Share of the time budget stage 1 may use, and its cap in seconds. In the
 #: physical regime stage 1 usually ends first at its 1500 iterations (11–12 s
 #: on two idle cores); its length matters little for the end result: on
@@ -89,12 +95,15 @@ FIELD_BUDGET_CAP_S = 45.0
 #: ``seconds.checkpoint_writes``), so that ``--time-budget B`` writes its
 #: phantom about B s after the command started (docs/benchmarks.md).
 LINEAR_WRITE_RESERVE_S = 1.0
+#: The same for the tissue regime, whose decode (:func:`octcl.host.stage2.tissue.decode_tissue`) took 2.5 s on two
+#: cores (skin phantom, seed 5).
+TISSUE_WRITE_RESERVE_S = 4.0
 #: Stage 1's seconds at least, however little of the budget is left.
 MIN_FIELD_BUDGET_S = 0.2
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
 #: over them); in the linear regime those of the first display fit
 #: (:data:`octcl.host.stage1.start.DISPLAY_ITERATIONS`, where the choice is measured).
-FIELD_ITERATIONS = {"physical": 1500, "linear": DISPLAY_ITERATIONS}
+FIELD_ITERATIONS = {"physical": 1500, "linear": DISPLAY_ITERATIONS, "tissue": DISPLAY_ITERATIONS}
 #: Stage 3's schedule in the linear regime: short steps while they gain.
 #: From a linear start the physical regime's schedule fell at once (its
 #: first 20 steps took Uniform B from 0.99964 to 0.9979; steps 4× shorter,
@@ -126,6 +135,9 @@ FINAL_RESERVE_FRACTION = 0.15
 #: Seconds a process needs after :func:`invert` returns: the report, the summary, the interpreter's exit
 #: (deadline mode leaves out a ceiling score that would eat into them).
 EXIT_RESERVE_S = 0.25
+#: Seconds :func:`octcl.tissue.tissue_figures` takes on a 295,000-row phantom (1.0–1.4 s on two cores, ``octcl
+#: phantom-stats``), with a margin.
+TISSUE_FIGURES_S = 2.0
 #: Seconds of a run's first exact score, before one has been timed: torch's import, the LPIPS network and
 #: the target's maps and features, one score (1.0 + 0.18 + 0.25 s on orange.png on two cores,
 #: ``scripts/bench_aim.py``), with a margin of a quarter.
@@ -202,6 +214,10 @@ class InvertResult:
     avoidable_share : float
         Share of pixels at a writable level of the target that the phantom
         renders at another: what a better phantom could still gain.
+    tissue : dict or None
+        The tissue regime's phantom as tissue (:func:`octcl.tissue.tissue_figures` against the target: energy
+        percentiles, shadow at the bottom of the visible tissue, band densities, median attenuation); None in the
+        other regimes, and where a time budget left no time for them (:data:`TISSUE_FIGURES_S`).
     """
 
     target: str
@@ -227,6 +243,7 @@ class InvertResult:
     ceiling: dict
     exact_share: float
     avoidable_share: float
+    tissue: dict | None = None
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -478,8 +495,9 @@ def field_budget_s(regime: str, time_budget_s: float, elapsed_s: float) -> float
     its step counts long before. At least :data:`MIN_FIELD_BUDGET_S`: a
     budget shorter than the process's start still gets a phantom, late.
     """
-    if regime == "linear":
-        budget = time_budget_s - elapsed_s - LINEAR_WRITE_RESERVE_S
+    if regime in ("linear", "tissue"):
+        reserve = LINEAR_WRITE_RESERVE_S if regime == "linear" else TISSUE_WRITE_RESERVE_S
+        budget = time_budget_s - elapsed_s - reserve
     else:
         budget = min(FIELD_BUDGET_FRACTION * time_budget_s, FIELD_BUDGET_CAP_S) - elapsed_s
     return min(max(budget, MIN_FIELD_BUDGET_S), FIELD_BUDGET_CAP_S)
@@ -497,7 +515,7 @@ def check_regime(regime) -> None:
 
 
 def default_schedule(regime: str) -> RefineSchedule:
-    """Stage 3's default schedule in a regime: :data:`LINEAR_SCHEDULE`, or ``RefineSchedule()`` (physical)."""
+    """Stage 3's default schedule in a regime: :data:`LINEAR_SCHEDULE`, or ``RefineSchedule()`` (physical, tissue)."""
     check_regime(regime)
     return LINEAR_SCHEDULE if regime == "linear" else RefineSchedule()
 
@@ -515,6 +533,7 @@ class _Start:
     seconds: dict                # {"field": s, "decode": s}
     candidates: list | None = None  # the linear regime's stage-1 candidates (LinearStart.candidates)
     aim: np.ndarray | None = None   # the levels stage 1 aimed at (linear regime), for stage 3's stop
+    decode: dict | None = None      # what the tissue decode chose (TissueDecode.summary)
 
 
 def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
@@ -535,7 +554,7 @@ def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s
 
 
 def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
-                  exact_score, field_backend) -> _Start:
+                  exact_score, field_backend, tissue: bool = False) -> _Start:
     """Stages 1–2 in the linear regime (:mod:`octcl.host.stage1.projections`); draws nothing at random.
 
     The aim is :func:`~octcl.host.stage1.ceiling.aimed_levels` of the target. Stage 1
@@ -543,7 +562,8 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
     default, :func:`~octcl.host.stage1.solve.default_schedules` of
     ``iterations`` display steps (a display fit, projections and the hinge
     fit towards the aimed levels; a half-length candidate only where that
-    one falls short); stage 2 :func:`~octcl.host.stage2.exact.decode_exact`. The
+    one falls short); stage 2 :func:`~octcl.host.stage2.exact.decode_exact` or, with
+    ``tissue`` (the tissue regime), :func:`~octcl.host.stage2.tissue.decode_tissue`. The
     aim goes on to stage 3, which does nothing where the start renders it.
     """
     from ..stage1.solve import default_schedules
@@ -557,15 +577,24 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
                          progress=lambda taken, planned: step(taken, planned, None), aim=aim, backend=field_backend)
     tell("decode", 0, 1)
     start = time.monotonic()
-    phantom = decode_exact(found.field, config)
-    schedule = dataclasses.replace(schedule, min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
+    decoded = None
+    if tissue:
+        from ..stage2.tissue import decode_tissue
+
+        decoded = decode_tissue(found.field, config)
+        phantom = decoded.phantom
+    else:
+        phantom = decode_exact(found.field, config)
+        schedule = dataclasses.replace(schedule,
+                                       min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
     # field_iterations: the first candidate's display steps, from which the others follow (the reproduce options).
     return _Start(phantom, schedule, iterations if field_schedule is None else field_schedule.display_iterations,
                   found.clock_steps, found.threads, None, {"field": found.seconds, "decode": time.monotonic() - start},
-                  found.candidates, found.aim)
+                  found.candidates, found.aim, None if decoded is None else decoded.summary())
 
 
-_STARTS = {"linear": _linear_start, "physical": _physical_start}
+_STARTS = {"linear": _linear_start, "physical": _physical_start,
+           "tissue": functools.partial(_linear_start, tissue=True)}
 
 
 def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, report_path=None,
@@ -736,9 +765,9 @@ class _Plan:
         if field_schedule is not None:
             from ..stage1.solve import FieldSchedule
 
-            if regime != "linear":
-                raise ValueError("a stage-1 schedule of named steps is the linear regime's; the physical regime's "
-                                 "stage 1 is field_iterations display steps")
+            if regime == "physical":
+                raise ValueError("a stage-1 schedule of named steps is the linear and tissue regimes'; the physical "
+                                 "regime's stage 1 is field_iterations display steps")
             field_schedule = field_schedule if isinstance(field_schedule, FieldSchedule) \
                 else FieldSchedule.parse(field_schedule)
         schedule = default_schedule(regime) if schedule is None else schedule
@@ -828,6 +857,16 @@ class _Run:
             return None
         return self.exact_score(image)["mean"]
 
+    def tissue_figures(self, phantom, levels) -> dict | None:
+        """:func:`octcl.tissue.tissue_figures` of the written phantom against the target's levels; in deadline mode
+        None where they would end past the budget, less :data:`EXIT_RESERVE_S`."""
+        from octcl.tissue import tissue_figures
+
+        end = time.monotonic() + TISSUE_FIGURES_S
+        if not self.plan.fixed and end > self.started + self.time_budget_s - EXIT_RESERVE_S:
+            return None
+        return tissue_figures(phantom, levels, self.config)
+
     def outcome(self, name: str, first: _Start, result) -> tuple[InvertResult, dict]:
         """The result and the report's settings, after the last write.
 
@@ -859,11 +898,13 @@ class _Run:
             reproduce=plan.reproduce(self.seed, result.iterations, first.field_iterations),
             reproducible=first.clock_steps == 0 and not result.stopped_by_deadline,
             ceiling=ceiling.as_dict(), exact_share=float(np.mean(rendered == levels)),
-            avoidable_share=float(np.mean(WRITABLE[levels] & (rendered != levels))))
+            avoidable_share=float(np.mean(WRITABLE[levels] & (rendered != levels))),
+            tissue=self.tissue_figures(result.phantom, levels) if plan.regime == "tissue" else None)
         settings = {"time_budget_s": self.time_budget_s, "field_budget_s": self.field_budget,
                     "field_iterations_planned": plan.field_iterations, "field_threads": first.threads,
                     "field_backend": plan.backend, "field_clock_steps": first.clock_steps,
-                    "field_candidates": first.candidates, "refine_threads": result.torch_threads,
+                    "field_candidates": first.candidates, "tissue_decode": first.decode,
+                    "refine_threads": result.torch_threads,
                     "schedule": dataclasses.asdict(first.schedule), "checkpoint_interval_s": CHECKPOINT_INTERVAL_S}
         return outcome, settings
 

@@ -62,11 +62,14 @@ DECODE_CORRECTIONS = 12
 #: faintest 1e−26 %, 150 dB below. 1e−36 % is an amplitude of 1e−19,
 #: a normal float32 number, and 80 dB below the faintest decoded row.
 ENERGY_FLOOR_PCT = 1e-36
+#: Least angle between a value and either carrier of the pair :func:`shadow_pairs` gives it: the corrections of
+#: :func:`decoded_weights` then move it within its pair (a pair 90° wide centred on it always has 45°).
+PAIR_MARGIN_RAD = 0.2
 #: Carrier offsets of the rows of a cell, in units of λ (module docstring).
 OFFSETS_IN_WAVELENGTHS = np.array([-3.0, -1.0, 1.0, 3.0]) / 16.0
 
 
-def row_depths_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+def row_depths_um(config: ScannerConfig = DEFAULT_CONFIG, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS) -> np.ndarray:
     """Depths (µm) of the four rows of each cell row n, as the phantom file holds them: (4, Nz).
 
     z_n + (−3, −1, 1, 3)·λ/16, z_n the cell depth; in row 0 (z_0 = 0) the
@@ -78,24 +81,24 @@ def row_depths_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
     contributions cancel a thousandfold by a level (0.03 % of Uniform A's
     pixels were).
     """
-    offsets = np.repeat((OFFSETS_IN_WAVELENGTHS * config.wavelength_um)[:, None], config.depth_pixels, axis=1)
-    offsets[:, 0] = np.where(offsets[:, 0] < 0, offsets[:, 0] + config.wavelength_um / 2, offsets[:, 0])
-    return round_significant(cell_depths_um(config)[None, :] + offsets, SIGNIFICANT_DIGITS)
+    shifts = np.repeat((np.asarray(offsets) * config.wavelength_um)[:, None], config.depth_pixels, axis=1)
+    shifts[:, 0] = np.where(shifts[:, 0] < 0, shifts[:, 0] + config.wavelength_um / 2, shifts[:, 0])
+    return round_significant(cell_depths_um(config)[None, :] + shifts, SIGNIFICANT_DIGITS)
 
 
-def row_offsets_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """Depth offsets o_{d,n} (µm) of the four rows of a cell in row n from its cell depth: (4, Nz)
+def row_offsets_um(config: ScannerConfig = DEFAULT_CONFIG, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS) -> np.ndarray:
+    """Depth offsets o_{d,n} (µm) of the rows of a cell in row n from its cell depth: (D, Nz)
     (:func:`row_depths_um` less z_n)."""
-    return row_depths_um(config) - cell_depths_um(config)[None, :]
+    return row_depths_um(config, offsets) - cell_depths_um(config)[None, :]
 
 
-def row_carriers(config: ScannerConfig) -> np.ndarray:
+def row_carriers(config: ScannerConfig, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS) -> np.ndarray:
     """e^{−2i·k0·o_{d,n}}, the carrier phase of each row's offset: (4, Nz, 1), broadcasting over columns.
 
     Near (3π/4, π/4, −π/4, −3π/4) for the offsets (−3, −1, 1, 3)·λ/16; the
     file's rounding of the depths moves them by up to 5e−4 rad.
     """
-    return np.exp(-2j * (2 * np.pi / config.wavelength_um) * row_offsets_um(config))[:, :, None]
+    return np.exp(-2j * (2 * np.pi / config.wavelength_um) * row_offsets_um(config, offsets))[:, :, None]
 
 
 def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
@@ -131,7 +134,8 @@ def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
 _SHIFT_TERMS = 3
 
 
-def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
+                   offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS) -> np.ndarray:
     """The grid field that renders like rows of amplitude ``weights`` at :func:`row_depths_um`.
 
     F_eff = IDFT_q(Σ_d Σ_n e^{−2i(k_q − k0)·o_{d,n}}·M_d[n]·e^{−2πiqn/Nz}),
@@ -145,8 +149,8 @@ def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) 
     k = ref.wavenumbers(config)
     k0 = 2 * np.pi / config.wavelength_um
     depth_um = cell_depths_um(config)[:, None]
-    offsets = row_offsets_um(config)
-    nominal = OFFSETS_IN_WAVELENGTHS * config.wavelength_um
+    nominal = np.asarray(offsets) * config.wavelength_um
+    offsets = row_offsets_um(config, offsets)
     spectrum = np.zeros(weights.shape[1:], dtype=np.complex128)
     for d in range(weights.shape[0]):
         cells = weights[d] * np.exp(-2j * k0 * (depth_um + offsets[d][:, None]))
@@ -163,10 +167,114 @@ def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) 
     return scipy.fft.ifft(spectrum, axis=0)
 
 
-def _cell_weights(field: np.ndarray, config: ScannerConfig) -> np.ndarray:
-    """:func:`split_on_carriers` of each cell value with its cell's own carrier e^{−2i·k0·z_n} taken out."""
+def _cell_weights(field: np.ndarray, config: ScannerConfig, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS,
+                  pairs: np.ndarray | None = None) -> np.ndarray:
+    """Each cell value, its cell's own carrier e^{−2i·k0·z_n} taken out, on two row carriers: the two enclosing it
+    (:func:`split_on_carriers`), or the cell's ``pairs`` (:func:`split_on_pairs`)."""
     k0 = 2 * np.pi / config.wavelength_um
-    return split_on_carriers(field * np.exp(2j * k0 * cell_depths_um(config))[:, None], row_carriers(config))
+    values = field * np.exp(2j * k0 * cell_depths_um(config))[:, None]
+    if pairs is None:
+        return split_on_carriers(values, row_carriers(config, offsets))
+    return split_on_pairs(values, row_carriers(config, offsets), pairs)
+
+
+def split_on_pairs(values: np.ndarray, carriers: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Weights p, q ≥ 0 with p·c_a + q·c_b = value on each cell's own pair (a, b) = ``pairs[:, cell]`` of the
+    ``carriers`` (D, Nz, 1); a value just outside its pair's sector (by rounding) gets the nearer edge. (D, ...)."""
+    everywhere = np.broadcast_to(carriers, (carriers.shape[0],) + values.shape)
+    c1, c2 = (np.take_along_axis(everywhere, index[None], 0)[0] for index in pairs)
+    determinant = (np.conj(c1) * c2).imag
+    weights = np.zeros((carriers.shape[0],) + values.shape)
+    np.put_along_axis(weights, pairs[0][None], np.maximum((np.conj(values) * c2).imag / determinant, 0.0)[None], 0)
+    np.put_along_axis(weights, pairs[1][None], np.maximum((np.conj(c1) * values).imag / determinant, 0.0)[None], 0)
+    return weights
+
+
+def shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, steps: int = 3) -> np.ndarray:
+    """For each value, the pair of carriers (a, b), at most ``steps`` apart around the circle and enclosing it,
+    whose non-negative weights have p² + q² nearest ``shadow`` in ratio: (2,) + values.shape carrier indices.
+
+    Two carriers 45° apart carry a value with p² + q² from 0.59 to 1 times |value|², 90° apart from 0.5 to 1,
+    135° apart from 1 to 3.4: the pair sets how much a cell shadows, the value what it shows."""
+    count = carriers.shape[0]
+    order = np.argsort(np.angle(carriers).reshape(count, -1)[:, 0])
+    value_angles = np.angle(values)
+    best = np.full(values.shape, np.inf)
+    pairs = np.zeros((2,) + values.shape, dtype=np.int64)
+    pairs[0], pairs[1] = order[0], order[1]  # zero values keep this pair, with both weights 0
+    for step in range(1, steps + 1):
+        for position, first in enumerate(order):
+            second = order[(position + step) % count]
+            c1, c2 = carriers[first], carriers[second]
+            within = (value_angles - np.angle(c1)) % (2 * np.pi)
+            inside = (within > PAIR_MARGIN_RAD) & (within < np.angle(c2 / c1) % (2 * np.pi) - PAIR_MARGIN_RAD)
+            determinant = (np.conj(c1) * c2).imag
+            p, q = (np.conj(values) * c2).imag / determinant, (np.conj(c1) * values).imag / determinant
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cost = np.abs(np.log((p**2 + q**2) / shadow))
+            better = inside & (cost < best)
+            best = np.where(better, cost, best)
+            pairs[0] = np.where(better, first, pairs[0])
+            pairs[1] = np.where(better, second, pairs[1])
+    return pairs
+
+
+def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
+                    corrections: int = DECODE_CORRECTIONS, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS,
+                    shadow: np.ndarray | None = None) -> np.ndarray:
+    """The rows' amplitudes that render, without shadowing, exactly as the field: (D, Nz, Nx), at the field's scale.
+
+    Offset d of cell (n, i) is the row at depth ``row_depths_um(config, offsets)[d, n]``
+    on A-scan line i; two of a cell's D are non-zero (module docstring):
+    the two carriers enclosing its value or, with ``shadow`` (Nz, Nx), the
+    pair whose weights' p² + q² is nearest it (:func:`shadow_pairs`, chosen
+    once from the field).
+
+    Raises
+    ------
+    ValueError
+        A field of the wrong shape, non-finite or all zero.
+    """
+    field = np.asarray(field, dtype=np.complex128)
+    if field.shape != config.shape:
+        raise ValueError(f"field is {field.shape}, the scanner's grid is {config.shape}")
+    if not np.isfinite(field).all():
+        raise ValueError("field has non-finite values")
+    if not np.any(field):
+        raise ValueError("the field is zero everywhere: there is nothing to decode")
+    pairs = None
+    placed = field
+    for _ in range(corrections + 1):
+        if shadow is not None:  # chosen from the field; again for a value a correction moved out of its pair
+            pairs = _kept_pairs(placed, config, offsets, shadow, pairs)
+        weights = _cell_weights(placed, config, offsets, pairs)
+        placed = placed + (field - rendered_cells(weights, config, offsets))
+    return weights
+
+
+def _kept_pairs(placed, config, offsets, shadow, pairs):
+    """:func:`shadow_pairs` of the cells of ``placed`` whose value is not strictly inside its pair (all at first)."""
+    k0 = 2 * np.pi / config.wavelength_um
+    values = placed * np.exp(2j * k0 * cell_depths_um(config))[:, None]
+    carriers = row_carriers(config, offsets)
+    chosen = shadow_pairs(values, carriers, shadow)
+    if pairs is None:
+        return chosen
+    everywhere = np.broadcast_to(carriers, (carriers.shape[0],) + values.shape)
+    c1, c2 = (np.take_along_axis(everywhere, index[None], 0)[0] for index in pairs)
+    within = np.angle(values / c1) % (2 * np.pi)
+    inside = (within > 0) & (within < np.angle(c2 / c1) % (2 * np.pi))
+    return np.where(inside, pairs, chosen)
+
+
+def phantom_of_rows(amplitude: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
+                    offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS) -> Phantom:
+    """The rows of non-zero ``amplitude`` (D, Nz, Nx) as a phantom: ordered by cell (row-major) and offset, x on
+    the A-scan lines, y = 0, z = :func:`row_depths_um`, E = 100·a²."""
+    row, column, offset = np.nonzero(np.moveaxis(amplitude, 0, -1) > 0)
+    z_um = row_depths_um(config, offsets)[offset, row]
+    x_um = ref.ascan_positions_um(config)[column]
+    return Phantom(x_um, np.zeros_like(x_um), z_um, 100.0 * np.moveaxis(amplitude, 0, -1)[row, column, offset] ** 2)
 
 
 def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
@@ -194,30 +302,20 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     ValueError
         A field of the wrong shape, non-finite or all zero; a bound outside (0, 0.5].
     """
-    field = np.asarray(field, dtype=np.complex128)
-    if field.shape != config.shape:
-        raise ValueError(f"field is {field.shape}, the scanner's grid is {config.shape}")
-    if not np.isfinite(field).all():
-        raise ValueError("field has non-finite values")
-    if not np.any(field):
-        raise ValueError("the field is zero everywhere: there is nothing to decode")
     if not 0 < shadow_bound <= 0.5:
         raise ValueError(f"shadow_bound must be in (0, 0.5], got {shadow_bound}")
-    placed = field
-    for _ in range(corrections):
-        placed = placed + (field - rendered_cells(_cell_weights(placed, config), config))
-    weights = _cell_weights(placed, config)
+    weights = decoded_weights(field, config, corrections)
     # Scale: Σ_j (B_ij·a_j)² over an A-scan is a lateral convolution of the
     # columns' Σ a² with e^{−2d²/w0²} (y = 0), over the offsets the float64
     # scanner resolves (octcl._reference.SHADOW_EXACT_RADIUS_SQ).
+    per_ascan = np.convolve((weights**2).sum(axis=(0, 1)), shadow_taps(config), mode="same")
+    return phantom_of_rows(math.sqrt(shadow_bound / per_ascan.max()) * weights, config)
+
+
+def shadow_taps(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """B² = e^{−2(d·Δx)²/w0²} for the A-scan offsets d the float64 scanner's shadowing resolves
+    (octcl._reference.SHADOW_EXACT_RADIUS_SQ), y = 0: the weight of a row d lines away in a shadow."""
     w0, pitch = config.beam_radius_um, config.lateral_pitch_um
     reach = math.ceil(math.sqrt(ref.SHADOW_EXACT_RADIUS_SQ) * w0 / pitch)
     offsets_um = np.arange(-reach, reach + 1) * pitch
-    per_ascan = np.convolve((weights**2).sum(axis=(0, 1)), np.exp(-2 * offsets_um**2 / w0**2), mode="same")
-    scale = math.sqrt(shadow_bound / per_ascan.max())
-    row, column, offset = np.nonzero(np.moveaxis(weights, 0, -1) > 0)
-    amplitude = scale * np.moveaxis(weights, 0, -1)[row, column, offset]
-    z_um = row_depths_um(config)[offset, row]
-    x_um = ref.ascan_positions_um(config)[column]
-    return Phantom(x_um, np.zeros_like(x_um), z_um, 100.0 * amplitude**2)
-
+    return np.exp(-2 * offsets_um**2 / w0**2)

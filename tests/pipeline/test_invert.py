@@ -229,6 +229,22 @@ def test_a_budget_with_no_time_left_to_score_writes_its_phantom_and_leaves_the_s
     assert report["score"] is None and report["trace"][-1]["score"] is None
 
 
+def test_the_tissue_regime_writes_a_phantom_at_tissue_scale_and_says_what_it_is(layers_path, tmp_path):
+    """--regime tissue: the linear field decoded at tissue scale, then stage 3 with shadowing (a fixed short
+    schedule here). The phantom shadows by whole decibels (the linear regime's by 1e−12 dB, its energies
+    ≲ 1e−10 %), the result and report carry its figures as tissue and the decode's choices."""
+    result = invert(layers_path, tmp_path / "tissue.txt", time_budget_s=600, regime="tissue", iterations=2,
+                    field_iterations=40, report_path=tmp_path / "r.json")
+    phantom = _assert_contract(tmp_path / "tissue.txt")
+    assert np.all(phantom.energy_pct <= 100)
+    assert result.tissue is not None and result.tissue["shadow_db"] > 3
+    assert result.tissue["energy_pct"]["p95"] > 1e-3
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["tissue"] == json.loads(json.dumps(result.tissue))
+    assert {"scale", "short_lines", "capped_rows", "bottom_light_db"} <= set(report["settings"]["tissue_decode"])
+    assert result.reproduce.startswith("--regime tissue")
+
+
 def test_the_linear_regime_writes_its_phantom_before_importing_torch(layers_path, tmp_path):
     """Stages 1–2 of one candidate need neither torch nor the scorer, and a scan the scanner rendered,
     inverted exactly, is scored without them: the whole run never imports torch (2 s on two cores)."""

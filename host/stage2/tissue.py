@@ -1,0 +1,209 @@
+"""Stage 2 at tissue scale: the exact decode's rows, each amplitude divided by the light the rows above leave it.
+
+The exact decode (:mod:`octcl.host.stage2.exact`) gives rows of amplitude w
+(two per cell, on the A-scan lines, y = 0) that render the field without
+shadowing, at any overall scale c. With shadowing (``shared/physics.md`` §2
+step 4) a row of amplitude a under transmission T shows T·a and leaves
+T·(1 − a²) below it; with the beam's lateral weights, the transmission of
+A-scan i after a layer ℓ of rows (amplitudes a_ℓ on the lines i') is
+
+    T_i ← T_i·Π_{i'} (1 − G_{i−i'}·a²_{ℓ,i'}),   G_d = e^{−2(d·Δx)²/w0²},
+
+and the phantom renders as the field does where every row shows c·w:
+a = c·w/T, T the transmission of the row's own line when the light reaches
+its layer (the layers, in depth order, are the cell rows' four depth
+offsets: 1024 of them).
+
+Integrating T from the top, T ← T·(1 − c²w²/T²), is unstable: an error in T
+grows like e^{2μz} through a homogeneous layer. From the bottom it shrinks.
+The beam is wider than the line spacing (G_1 = 0.49), so T varies slowly
+across lines, and each line's loss at a layer is taken as S/T², S the
+layer's shown intensities I = c²w² weighted by G across the lines (as if T
+were the same on the lines the beam reaches: solving with each line's own T
+instead fed back, a dim line's bright rows shadowing their neighbours ever
+more, and diverged on a skin phantom). Given the light T_b below a layer,
+the light above it solves T_b = T_a·(1 − S/T_a²), whose root
+T_a = (T_b + sqrt(T_b² + 4S))/2 is ≥ sqrt(S), so a² = I/T_a² ≤ I/S ≤ 1
+(E ≤ 100 %). To first order T² drops by 2·S at each layer, so
+T²(z) = T²(bottom) + 2·Σ_{z' ≥ z} S: with no light left at the bottom,
+a² = I/(2·Σ_{z'≥z} S), the depth-resolved attenuation estimator (Vermeer et
+al., Biomed. Opt. Express 5, 322, 2014), whose energies blow up at the
+bottom of the data. The light left at the bottom is the one free
+parameter, and T(top) = 1 then fixes the scale c.
+
+The light below the data. Beyond the deepest rows with signal the light
+goes on decaying: the tail of Σ I is estimated per line from the decay of
+the deepest rows with signal, R(n)·r/(1 − r), r the fitted per-row ratio
+(the correction of Liu et al., "Optimized depth-resolved estimation to
+measure optical attenuation coefficients from optical coherence tomography
+and its application in cancer detection", Biomed. Opt. Express 10, 2019).
+Each line then asks for its own scale c_i² = 1/(2·(ΣI_i + tail_i)); the
+phantom has one, the median over the lines with signal, and each line's
+light at the bottom follows from it (:func:`decode_tissue`). A line that
+would need more light than reaches it (T(top) > 1 even with none left at
+the bottom) is counted, not failed: :attr:`TissueDecode.short_lines`.
+
+Lateral variation of T between neighbouring lines is not compensated (each
+row takes its own line's T; the neighbouring A-scans it reaches see theirs),
+nor are rows that share a depth across lines (the scanner's tie order
+decides which of them shadows which): stage 3 refines what is left.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import convolve1d, gaussian_filter
+
+from ...config import DEFAULT_CONFIG, ScannerConfig
+from ...phantom import Phantom
+from .exact import DECODE_CORRECTIONS, decoded_weights, phantom_of_rows, row_depths_um, shadow_taps
+
+#: Carrier offsets of the rows of a cell, in units of λ: eight, 45° apart in carrier phase, so that a cell's
+#: pair can shadow from 0.5 to 3.4 times what it shows (:func:`octcl.host.stage2.exact.shadow_pairs`).
+TISSUE_OFFSETS = np.arange(-7, 8, 2) / 32.0
+#: σ in rows and lines of the local mean of |F|² that each cell's pair aims its shadow at (a speckle-free n·E).
+SHADOW_SMOOTHING = (2.0, 4.0)
+#: Largest a² a row may take (E = 100·a² %): the rules' E ≤ 100 %.
+MAX_AMPLITUDE_SQ = 1.0
+#: The phantom's c² is this quantile of the lines' own (module docstring).
+SCALE_QUANTILE = 0.5
+#: Passes correcting each line's light at the bottom until its light at the top is 1.
+BOTTOM_PASSES = 8
+#: Rows with signal: the shadow-weighted row intensity above this share of the brightest row's (the display's
+#: floor is 51 dB below its maximum pixel: 10^−5.1 in intensity).
+SIGNAL_SHARE = 10 ** (-51 / 10)
+#: Deepest rows with signal whose decay gives a line's tail (:func:`tail_sums`).
+TAIL_ROWS = 24
+#: Largest per-row decay ratio of a tail: a line that does not decay still has a finite tail (≤ 99 rows' worth).
+MAX_TAIL_RATIO = 0.99
+
+
+@dataclass
+class TissueDecode:
+    """What :func:`decode_tissue` made, and what it chose.
+
+    Attributes
+    ----------
+    phantom : Phantom
+        The rows at tissue scale.
+    scale : float
+        c: every row shows c·w (w the exact decode's amplitude at the field's scale).
+    transmission : ndarray, (L, Nx)
+        T of each line when the light reaches each layer, layers in depth order (L = 4·Nz).
+    bottom_light : ndarray, (Nx,)
+        T² below the last layer, per line.
+    short_lines : int
+        Lines whose light at the top stayed above 1 with none left at the bottom: their rows render
+        dimmer than the field asks (more signal than tissue-scale energies can make at this scale).
+    capped_rows : int
+        Rows whose a² reached :data:`MAX_AMPLITUDE_SQ`.
+    """
+
+    phantom: Phantom
+    scale: float
+    transmission: np.ndarray
+    bottom_light: np.ndarray
+    short_lines: int
+    capped_rows: int
+
+    def summary(self) -> dict:
+        """The choices as plain numbers (an inversion's report): the scale, the lines short of light, the rows
+        at E = 100 %, the light left at the bottom (median T², and in dB)."""
+        bottom = float(np.median(self.bottom_light))
+        return {"scale": self.scale, "short_lines": self.short_lines, "capped_rows": self.capped_rows,
+                "bottom_light_median": bottom,
+                "bottom_light_db": None if bottom <= 0 else float(-10 * np.log10(bottom))}
+
+
+def layer_order(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """The (offset, row) pairs of :func:`row_depths_um` in depth order, as flat indices into its (D, Nz)."""
+    return np.argsort(row_depths_um(config, TISSUE_OFFSETS).ravel(), kind="stable")
+
+
+def light_above(below: np.ndarray, shadow_sq: np.ndarray) -> np.ndarray:
+    """T above a layer from T below it, per line: the root of T_b = T_a·(1 − S/T_a²), S the layer's
+    shadow-weighted shown intensity on the line (module docstring); T_a ≥ sqrt(S)."""
+    return (below + np.sqrt(below**2 + 4 * shadow_sq)) / 2
+
+
+def transmission_from_bottom(shadow_sq: np.ndarray, bottom_light: np.ndarray) -> np.ndarray:
+    """T of each line at each layer, (L, Nx), integrated from the bottom: ``shadow_sq`` (L, Nx) each layer's
+    shadow-weighted shown intensity per line (depth order), ``bottom_light`` T² below the last."""
+    transmission = np.empty_like(shadow_sq)
+    below = np.sqrt(bottom_light)
+    for layer in range(shadow_sq.shape[0] - 1, -1, -1):
+        below = transmission[layer] = light_above(below, shadow_sq[layer])
+    return transmission
+
+
+def tail_sums(rows_sq: np.ndarray) -> np.ndarray:
+    """Per line, Σ I beyond the data: R(n_last)·r/(1 − r) from the decay of its deepest :data:`TAIL_ROWS` rows with
+    signal (module docstring); ``rows_sq`` (Nz, Nx) is each cell row's shadow-weighted Σ w². 0 without signal."""
+    signal = rows_sq > SIGNAL_SHARE * rows_sq.max()
+    tails = np.zeros(rows_sq.shape[1])
+    depth = np.arange(rows_sq.shape[0])
+    for line in range(rows_sq.shape[1]):
+        rows = depth[signal[:, line]][-TAIL_ROWS:]
+        if rows.size < 2:
+            continue
+        slope = np.polyfit(rows, np.log(rows_sq[rows, line]), 1)[0]
+        ratio = min(float(np.exp(slope)), MAX_TAIL_RATIO)
+        fitted_last = np.exp(np.polyval(np.polyfit(rows, np.log(rows_sq[rows, line]), 1), rows[-1]))
+        tails[line] = fitted_last * ratio / (1 - ratio)
+    return tails
+
+
+def tissue_scale(weights: np.ndarray, taps: np.ndarray) -> tuple[float, np.ndarray]:
+    """c² (the median of the lines' 1/(2·(ΣI + tail)) over the lines with signal) and the shadow-weighted row sums
+    (Nz, Nx) of w² it was estimated from."""
+    rows_sq = convolve1d((weights**2).sum(axis=0), taps, axis=1, mode="constant")
+    per_line = rows_sq.sum(axis=0) + tail_sums(rows_sq)
+    lit = per_line > 0
+    return float(np.quantile(1.0 / (2.0 * per_line[lit]), SCALE_QUANTILE)), rows_sq
+
+
+def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, scale_sq: float | None = None,
+                  corrections: int = DECODE_CORRECTIONS) -> TissueDecode:
+    """The exact decode's rows at tissue scale (module docstring).
+
+    Parameters
+    ----------
+    field : ndarray of complex, (Nz, Nx)
+        F on the cell grid; any overall scale.
+    config : ScannerConfig
+    scale_sq : float, optional
+        c², the light the rows show relative to the field's scale (default: from the data, :func:`tissue_scale`).
+    corrections : int
+        The exact decode's corrections.
+    """
+    local_mean = gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
+    weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, shadow=local_mean)
+    taps = shadow_taps(config)
+    estimated, rows_sq = tissue_scale(weights, taps)
+    scale_sq = estimated if scale_sq is None else float(scale_sq)
+    if not scale_sq > 0:
+        raise ValueError(f"the scale c² must be positive, got {scale_sq!r}")
+    order = layer_order(config)
+    layers = weights.reshape(-1, config.a_scans)[order]  # (L, Nx), depth order
+    shown_sq = scale_sq * layers**2
+    shadow_sq = convolve1d(shown_sq, taps, axis=1, mode="constant")
+    # Each line's light at the bottom: first order 1 − 2c²ΣI, then corrected until its light at the top is 1.
+    bottom = np.maximum(1.0 - 2.0 * shadow_sq.sum(axis=0), 0.0)
+    for _ in range(BOTTOM_PASSES):
+        transmission = transmission_from_bottom(shadow_sq, bottom)
+        bottom = np.maximum(bottom + (1.0 - transmission[0] ** 2), 0.0)
+    transmission = transmission_from_bottom(shadow_sq, bottom)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        amplitude_sq = np.where(transmission > 0, np.minimum(shown_sq / transmission**2, MAX_AMPLITUDE_SQ), 0.0)
+    capped = int(np.count_nonzero((amplitude_sq >= MAX_AMPLITUDE_SQ) & (layers > 0)))
+    rows = np.empty_like(layers)
+    rows[order] = np.sqrt(amplitude_sq)
+    phantom = phantom_of_rows(rows.reshape(weights.shape) * (weights > 0), config, TISSUE_OFFSETS)
+    return TissueDecode(phantom, float(np.sqrt(scale_sq)), transmission, bottom,
+                        int(np.count_nonzero(transmission[0] > 1.0 + 1e-6)), capped)
+
+
+__all__ = ["MAX_AMPLITUDE_SQ", "SCALE_QUANTILE", "TissueDecode", "decode_tissue", "layer_order", "light_above",
+           "tail_sums", "tissue_scale", "transmission_from_bottom"]
