@@ -10,7 +10,7 @@ the share of pixels at the target's level and the exact score, beside the
 stage-2 start's (``initial_score``: the decode alone, before stage 3).
 
 Seeds used while building the decode: skin 5 and the two-layer truth of
-``tests/stage2/test_tissue.py``; report others.
+``tests/stage2/test_tissue_decode.py``; report others.
 
 Example::
 
