@@ -63,6 +63,7 @@ import os
 import re
 import sys
 import tempfile
+import time
 import warnings
 from dataclasses import dataclass
 from importlib import metadata
@@ -443,6 +444,25 @@ def context_for(device):
     return context, cl.CommandQueue(context)
 
 
+#: Seconds after which the lock file of octcl's program cache is taken to be a dead process's. pyopencl holds it
+#: while it reads or writes one program's binary (milliseconds), and waits a minute for it before failing every
+#: build; a process killed in that window (SIGKILL) leaves it behind.
+STALE_LOCK_S = 20.0
+
+
+def program_cache_dir() -> Path:
+    """Where pyopencl keeps octcl's built programs (``cache_dir()/programs``), a stale lock in it removed."""
+    folder = cache_dir() / "programs"
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / "lock"
+    with contextlib.suppress(FileNotFoundError):  # another process may remove it first
+        if time.time() - lock.stat().st_mtime > STALE_LOCK_S:
+            logger.warning("removing %s, left %.0f s ago by a process that ended while holding it", lock,
+                           time.time() - lock.stat().st_mtime)
+            lock.unlink()
+    return folder
+
+
 def quiet_build(context, source: str, options: list[str], device, *, binary_cache: bool = True):
     """Build ``source`` for ``device``; its compiler log goes to the debug log instead of a CompilerWarning on stderr.
 
@@ -451,13 +471,17 @@ def quiet_build(context, source: str, options: list[str], device, *, binary_cach
     returns the bare program (the probe, whose program is thrown away):
     deciding whether to use that cache, pyopencl asks the device for an
     NVIDIA-only attribute (``CL_DEVICE_COMPUTE_CAPABILITY_MAJOR_NV``), which
-    Oclgrind's API check reports as an error.
+    Oclgrind's API check reports as an error. The cache is octcl's own
+    (:func:`program_cache_dir`), so that a lock a killed process left in it is
+    cleared before the build: in pyopencl's default one it made every later
+    build wait a minute and then fail (a batch test that kills a worker
+    mid-scan left one).
     """
     cl = pyopencl_module()
     with warnings.catch_warnings(), _compiler_output_to_log():
         warnings.simplefilter("ignore", cl.CompilerWarning)
         if binary_cache:
-            built = cl.Program(context, source).build(options=options)
+            built = cl.Program(context, source).build(options=options, cache_dir=str(program_cache_dir()))
         else:
             built = cl._cl._Program(context, source)
             built.build(" ".join(options).encode(), [device])

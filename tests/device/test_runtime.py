@@ -225,6 +225,30 @@ def test_successful_builds_print_nothing_and_log_under_debug(caplog):
     assert "octcl test remark" in caplog.text
 
 
+def test_a_lock_a_killed_process_left_in_the_program_cache_does_not_stop_builds(tmp_path, monkeypatch, caplog):
+    """A lock older than STALE_LOCK_S (pyopencl holds it for one binary's read or write) is removed before the
+    build, which then takes seconds, not pyopencl's minute and failure; a fresh lock (another process building
+    now) is left alone."""
+    import os
+    import time
+
+    monkeypatch.setenv("OCTCL_CACHE_DIR", str(tmp_path))
+    lock = tmp_path / "programs" / "lock"
+    lock.parent.mkdir(parents=True)
+    lock.touch()
+    assert _runtime.program_cache_dir() == lock.parent and lock.exists()  # fresh: kept
+    old = time.time() - 2 * _runtime.STALE_LOCK_S
+    os.utime(lock, (old, old))
+    device, _ = choose_device()
+    context, _ = context_for(device)
+    started = time.monotonic()
+    with caplog.at_level(logging.WARNING, logger="octcl"):
+        _runtime.quiet_build(context, f"__kernel void k{uuid.uuid4().hex}(__global int *x) {{ x[0] = 2; }}", [],
+                             device)
+    assert time.monotonic() - started < 30 and not lock.exists()
+    assert "removing" in caplog.text and str(lock) in caplog.text
+
+
 def test_failed_builds_keep_the_compiler_log():
     device, _ = choose_device()
     context, _ = context_for(device)
