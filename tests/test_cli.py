@@ -141,7 +141,7 @@ def test_render_numpy_backend_and_truncate(tmp_path, capsys):
      "iterations must be a whole number in [0, 110]"),
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--regime", "physical", "--iterations", "401"],
      "iterations must be a whole number in [0, 400]"),
-    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--regime", "tissue"], "invalid choice: 'tissue'"),
+    (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--regime", "mirror"], "invalid choice: 'mirror'"),
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--threads", "0"], "threads must be a whole number ≥ 1"),
     (["invert", "{tmp}/bad.png", "-o", "{tmp}/x.txt", "--target-score", "1.5"], "target_score must be a score in (0, 1]"),
     # Images that claim more pixels than octcl reads are refused by their header, before decoding.
