@@ -49,6 +49,15 @@ def ascan_positions_um(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
     return (np.arange(config.a_scans) - config.a_scans / 2) * config.lateral_pitch_um
 
 
+def shadow_taps(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """Step 4's B² = e^{−2(d·Δx)²/w0²} at y = 0 for the A-scan offsets d = −R … R this scanner resolves
+    (:data:`SHADOW_EXACT_RADIUS_SQ`): the weight, in A-scan i's shadow, of a scatterer on the line d away."""
+    w0, pitch = config.beam_radius_um, config.lateral_pitch_um
+    reach = int(np.ceil(np.sqrt(SHADOW_EXACT_RADIUS_SQ) * w0 / pitch))
+    offsets_um = np.arange(-reach, reach + 1) * pitch
+    return np.exp(-2 * offsets_um**2 / w0**2)
+
+
 def beam_weight(dx_um: np.ndarray, y_um: np.ndarray, beam_radius_um: float) -> np.ndarray:
     """Step 3: Gaussian beam weight B = exp(−(Δx² + y²)/w0²)."""
     return np.exp(-(dx_um**2 + y_um**2) / beam_radius_um**2)

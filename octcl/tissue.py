@@ -43,7 +43,7 @@ def transmission_map(phantom: Phantom, config: ScannerConfig = DEFAULT_CONFIG) -
     """T_i at the top of each pixel row n (depth n·Δz), (Nz, Nx): the product over the scatterers above it within
     the float64 scanner's shadow reach (octcl._reference.SHADOW_EXACT_RADIUS_SQ); 0 below a mirror."""
     w0, pitch = config.beam_radius_um, config.lateral_pitch_um
-    reach = math.ceil(math.sqrt(ref.SHADOW_EXACT_RADIUS_SQ) * w0 / pitch)
+    reach = ref.shadow_taps(config).size // 2
     positions = ref.ascan_positions_um(config)
     amplitude_sq = phantom.energy_pct / 100.0
     nearest = np.rint((phantom.x_um - positions[0]) / pitch).astype(np.int64)

@@ -199,11 +199,8 @@ def _shadow_scale(children: _Children, config: ScannerConfig, shadow_loss: float
     e^{−2·d²/w0²}, over the offsets the float64 scanner can still resolve
     (:data:`octcl._reference.SHADOW_EXACT_RADIUS_SQ`).
     """
-    w0, pitch = config.beam_radius_um, config.lateral_pitch_um
     column_power = np.bincount(children.column, weights=children.amplitude**2, minlength=config.a_scans)
-    reach = math.ceil(math.sqrt(ref.SHADOW_EXACT_RADIUS_SQ) * w0 / pitch)
-    offsets_um = np.arange(-reach, reach + 1) * pitch
-    per_ascan = np.convolve(column_power, np.exp(-2 * offsets_um**2 / w0**2), mode="same")
+    per_ascan = np.convolve(column_power, ref.shadow_taps(config), mode="same")
     return math.sqrt(shadow_loss / per_ascan.max())
 
 

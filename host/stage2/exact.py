@@ -171,18 +171,27 @@ def _cell_weights(field: np.ndarray, config: ScannerConfig, offsets: np.ndarray 
                   pairs: np.ndarray | None = None) -> np.ndarray:
     """Each cell value, its cell's own carrier e^{−2i·k0·z_n} taken out, on two row carriers: the two enclosing it
     (:func:`split_on_carriers`), or the cell's ``pairs`` (:func:`split_on_pairs`)."""
-    k0 = 2 * np.pi / config.wavelength_um
-    values = field * np.exp(2j * k0 * cell_depths_um(config))[:, None]
+    values = _carrier_free(field, config)
     if pairs is None:
         return split_on_carriers(values, row_carriers(config, offsets))
     return split_on_pairs(values, row_carriers(config, offsets), pairs)
 
 
+def _carrier_free(field: np.ndarray, config: ScannerConfig) -> np.ndarray:
+    """Each cell value with its cell's own carrier e^{−2i·k0·z_n} taken out (what the row carriers then carry)."""
+    return field * np.exp(2j * (2 * np.pi / config.wavelength_um) * cell_depths_um(config))[:, None]
+
+
+def _pair_carriers(carriers: np.ndarray, pairs: np.ndarray, shape: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """The two carriers of each cell's pair, each of ``shape``: ``carriers`` (D, Nz, 1) at ``pairs`` (2,) + shape."""
+    everywhere = np.broadcast_to(carriers, (carriers.shape[0],) + shape)
+    return tuple(np.take_along_axis(everywhere, index[None], 0)[0] for index in pairs)
+
+
 def split_on_pairs(values: np.ndarray, carriers: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """Weights p, q ≥ 0 with p·c_a + q·c_b = value on each cell's own pair (a, b) = ``pairs[:, cell]`` of the
     ``carriers`` (D, Nz, 1); a value just outside its pair's sector (by rounding) gets the nearer edge. (D, ...)."""
-    everywhere = np.broadcast_to(carriers, (carriers.shape[0],) + values.shape)
-    c1, c2 = (np.take_along_axis(everywhere, index[None], 0)[0] for index in pairs)
+    c1, c2 = _pair_carriers(carriers, pairs, values.shape)
     determinant = (np.conj(c1) * c2).imag
     weights = np.zeros((carriers.shape[0],) + values.shape)
     np.put_along_axis(weights, pairs[0][None], np.maximum((np.conj(values) * c2).imag / determinant, 0.0)[None], 0)
@@ -253,18 +262,15 @@ def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
 
 
 def _kept_pairs(placed, config, offsets, shadow, pairs):
-    """:func:`shadow_pairs` of the cells of ``placed`` whose value is not strictly inside its pair (all at first)."""
-    k0 = 2 * np.pi / config.wavelength_um
-    values = placed * np.exp(2j * k0 * cell_depths_um(config))[:, None]
-    carriers = row_carriers(config, offsets)
-    chosen = shadow_pairs(values, carriers, shadow)
+    """``pairs``, with :func:`shadow_pairs` for the cells of ``placed`` whose value is not strictly inside its
+    pair (every cell at first); chosen again only where some cell left its pair."""
+    values, carriers = _carrier_free(placed, config), row_carriers(config, offsets)
     if pairs is None:
-        return chosen
-    everywhere = np.broadcast_to(carriers, (carriers.shape[0],) + values.shape)
-    c1, c2 = (np.take_along_axis(everywhere, index[None], 0)[0] for index in pairs)
+        return shadow_pairs(values, carriers, shadow)
+    c1, c2 = _pair_carriers(carriers, pairs, values.shape)
     within = np.angle(values / c1) % (2 * np.pi)
     inside = (within > 0) & (within < np.angle(c2 / c1) % (2 * np.pi))
-    return np.where(inside, pairs, chosen)
+    return pairs if inside.all() else np.where(inside, pairs, shadow_pairs(values, carriers, shadow))
 
 
 def phantom_of_rows(amplitude: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
@@ -308,14 +314,6 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     # Scale: Σ_j (B_ij·a_j)² over an A-scan is a lateral convolution of the
     # columns' Σ a² with e^{−2d²/w0²} (y = 0), over the offsets the float64
     # scanner resolves (octcl._reference.SHADOW_EXACT_RADIUS_SQ).
-    per_ascan = np.convolve((weights**2).sum(axis=(0, 1)), shadow_taps(config), mode="same")
+    per_ascan = np.convolve((weights**2).sum(axis=(0, 1)), ref.shadow_taps(config), mode="same")
     return phantom_of_rows(math.sqrt(shadow_bound / per_ascan.max()) * weights, config)
 
-
-def shadow_taps(config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
-    """B² = e^{−2(d·Δx)²/w0²} for the A-scan offsets d the float64 scanner's shadowing resolves
-    (octcl._reference.SHADOW_EXACT_RADIUS_SQ), y = 0: the weight of a row d lines away in a shadow."""
-    w0, pitch = config.beam_radius_um, config.lateral_pitch_um
-    reach = math.ceil(math.sqrt(ref.SHADOW_EXACT_RADIUS_SQ) * w0 / pitch)
-    offsets_um = np.arange(-reach, reach + 1) * pitch
-    return np.exp(-2 * offsets_um**2 / w0**2)

@@ -56,9 +56,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import convolve1d, gaussian_filter
 
+from ... import _reference as ref
 from ...config import DEFAULT_CONFIG, ScannerConfig
 from ...phantom import Phantom
-from .exact import DECODE_CORRECTIONS, decoded_weights, phantom_of_rows, row_depths_um, shadow_taps
+from .exact import DECODE_CORRECTIONS, decoded_weights, phantom_of_rows, row_depths_um
 
 #: Carrier offsets of the rows of a cell, in units of λ: eight, 45° apart in carrier phase, so that a cell's
 #: pair can shadow from 0.5 to 3.4 times what it shows (:func:`octcl.host.stage2.exact.shadow_pairs`).
@@ -184,7 +185,7 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
     """
     local_mean = gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
     weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, shadow=local_mean)
-    taps = shadow_taps(config)
+    taps = ref.shadow_taps(config)
     estimated, rows_sq = tissue_scale(weights, taps)
     scale_sq = estimated if scale_sq is None else float(scale_sq)
     if not scale_sq > 0:
