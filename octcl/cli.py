@@ -169,7 +169,8 @@ def _cmd_phantom_stats(args) -> int:
         from .render import render
 
         levels = render(phantom, config).levels
-    figures = tissue_figures(phantom, levels, config)
+    transmission = transmission_map(phantom, config)
+    figures = tissue_figures(phantom, levels, config, transmission)
     payload = {"phantom": str(args.phantom), "target": args.target, **figures}
     if args.truth:
         truth = tissue_figures(Phantom.load(args.truth, config), levels, config)
@@ -178,8 +179,7 @@ def _cmd_phantom_stats(args) -> int:
             mine / theirs if signal and theirs > 0 else None for mine, theirs, signal in
             zip(figures["band_densities_pct"], truth["band_densities_pct"], truth["bands_with_signal"])]
     if args.attenuation_map:
-        _write_attenuation_map(args.attenuation_map, attenuation_map(transmission_map(phantom, config), config),
-                               Path(args.phantom).name)
+        _write_attenuation_map(args.attenuation_map, attenuation_map(transmission, config), Path(args.phantom).name)
     payload["seconds"] = time.monotonic() - started
     return _finish(args, payload, _phantom_stats_lines(payload))
 
@@ -187,18 +187,17 @@ def _cmd_phantom_stats(args) -> int:
 def _phantom_stats_lines(payload: dict) -> list[str]:
     """Human summary of :func:`_cmd_phantom_stats`'s figures."""
     energy = payload["energy_pct"]
-    shadow = "no visible tissue" if payload["shadow_db"] is None else f"{payload['shadow_db']:.1f} dB"
     lines = [f"{payload['phantom']}: {payload['scatterers']:,} scatterers; E (%) p5 {energy['p5']:.3g}, median "
              f"{energy['p50']:.3g}, p95 {energy['p95']:.3g}, max {energy['max']:.3g}",
-             f"shadow at the bottom of the visible tissue (median over A-scans): {shadow}; median attenuation "
-             f"there {payload['attenuation_per_mm_median'] or 0:.3g} /mm",
+             f"shadow at the bottom of the visible tissue (median over A-scans): {_shadow_text(payload)}; median "
+             f"attenuation there {_attenuation_text(payload)}",
              f"energy density per {payload['band_um']:g} um band (sum of E e^-2y2/w0^2, %): "
              + ", ".join(f"{value:.3g}{'' if signal else ' (no signal)'}" for value, signal in
                          zip(payload["band_densities_pct"], payload["bands_with_signal"]))]
     if "truth" in payload:
         truth = payload["truth"]
         lines.append(f"truth {truth['phantom']}: median E {truth['energy_pct']['p50']:.3g} %, shadow "
-                     f"{truth['shadow_db'] if truth['shadow_db'] is None else round(truth['shadow_db'], 1)} dB; "
+                     f"{_shadow_text(truth)}; "
                      "band densities / truth's: " + ", ".join(
                          "-" if ratio is None else f"{ratio:.2f}" for ratio in payload["band_density_ratios"]))
     return lines
@@ -279,11 +278,20 @@ def _tissue_lines(figures) -> list[str]:
     """The tissue regime's summary of its phantom as tissue (none for the other regimes)."""
     if figures is None:
         return []
-    shadow = "no visible tissue" if figures["shadow_db"] is None else f"{figures['shadow_db']:.1f} dB"
-    attenuation = figures["attenuation_per_mm_median"]
     return [f"as tissue: median E {figures['energy_pct']['p50']:.3g} % (p95 {figures['energy_pct']['p95']:.3g} %), "
-            f"shadow at the bottom of the visible tissue {shadow}, median attenuation there "
-            f"{'-' if attenuation is None else f'{attenuation:.3g}'} /mm (octcl phantom-stats for more)"]
+            f"shadow at the bottom of the visible tissue {_shadow_text(figures)}, median attenuation there "
+            f"{_attenuation_text(figures)} (octcl phantom-stats for more)"]
+
+
+def _shadow_text(figures: dict) -> str:
+    """A phantom's shadow at depth (:func:`octcl.tissue.tissue_figures`), or why there is none."""
+    return "no visible tissue" if figures["shadow_db"] is None else f"{figures['shadow_db']:.1f} dB"
+
+
+def _attenuation_text(figures: dict) -> str:
+    """The median attenuation over the visible tissue, or why there is none."""
+    value = figures["attenuation_per_mm_median"]
+    return "- (no visible tissue)" if value is None else f"{value:.3g} /mm"
 
 
 def _ceiling_score(value) -> str:

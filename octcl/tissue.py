@@ -97,9 +97,11 @@ def attenuation_map(transmission: np.ndarray, config: ScannerConfig = DEFAULT_CO
     return -step / config.pixel_size_um * 1000.0
 
 
-def tissue_figures(phantom: Phantom, levels: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) -> dict:
-    """The figures of the module docstring for ``phantom`` against the target ``levels`` (its visible tissue)."""
-    transmission = transmission_map(phantom, config)
+def tissue_figures(phantom: Phantom, levels: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
+                   transmission: np.ndarray | None = None) -> dict:
+    """The figures of the module docstring for ``phantom`` against the target ``levels`` (its visible tissue);
+    ``transmission``: its :func:`transmission_map`, where the caller has it already."""
+    transmission = transmission_map(phantom, config) if transmission is None else transmission
     energy = phantom.energy_pct
     attenuation = attenuation_map(transmission, config)
     visible = levels >= VISIBLE_LEVEL

@@ -847,25 +847,28 @@ class _Run:
                       on_improvement=lambda improved, components: self.writer.offer(improved),
                       ceiling=self.ceiling.ceiling if fixed else None, threads=self.plan.threads,
                       target_score=target_score, aim=first.aim,
-                      score_by=None if fixed else self.started + self.time_budget_s - EXIT_RESERVE_S)
+                      score_by=self.exit_by)
+
+    @property
+    def exit_by(self) -> float | None:
+        """In deadline mode, the ``time.monotonic()`` by which what follows the last write must end: the budget
+        less :data:`EXIT_RESERVE_S` for the report, the summary and the exit (a budget is the process's)."""
+        return None if self.plan.fixed else self.started + self.time_budget_s - EXIT_RESERVE_S
+
+    def fits_before_exit(self, seconds: float) -> bool:
+        """Whether work of ``seconds`` started now ends by :attr:`exit_by` (always, on a fixed schedule)."""
+        return self.exit_by is None or time.monotonic() + seconds <= self.exit_by
 
     def ceiling_score(self, image) -> float | None:
-        """The exact score of one of the ceiling's images; in deadline mode None where computing it would end
-        past the budget, less :data:`EXIT_RESERVE_S` for what follows the result (a budget is the process's)."""
-        end = time.monotonic() + self.exact_score.cost_s(image)
-        if not self.plan.fixed and end > self.started + self.time_budget_s - EXIT_RESERVE_S:
-            return None
-        return self.exact_score(image)["mean"]
+        """The exact score of one of the ceiling's images; None where it would not end by :attr:`exit_by`."""
+        return self.exact_score(image)["mean"] if self.fits_before_exit(self.exact_score.cost_s(image)) else None
 
     def tissue_figures(self, phantom, levels) -> dict | None:
-        """:func:`octcl.tissue.tissue_figures` of the written phantom against the target's levels; in deadline mode
-        None where they would end past the budget, less :data:`EXIT_RESERVE_S`."""
+        """:func:`octcl.tissue.tissue_figures` of the written phantom against the target's levels; None where they
+        would not end by :attr:`exit_by` (:data:`TISSUE_FIGURES_S`)."""
         from octcl.tissue import tissue_figures
 
-        end = time.monotonic() + TISSUE_FIGURES_S
-        if not self.plan.fixed and end > self.started + self.time_budget_s - EXIT_RESERVE_S:
-            return None
-        return tissue_figures(phantom, levels, self.config)
+        return tissue_figures(phantom, levels, self.config) if self.fits_before_exit(TISSUE_FIGURES_S) else None
 
     def outcome(self, name: str, first: _Start, result) -> tuple[InvertResult, dict]:
         """The result and the report's settings, after the last write.
