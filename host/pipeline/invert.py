@@ -95,8 +95,8 @@ FIELD_BUDGET_CAP_S = 45.0
 #: ``seconds.checkpoint_writes``), so that ``--time-budget B`` writes its
 #: phantom about B s after the command started (docs/benchmarks.md).
 LINEAR_WRITE_RESERVE_S = 1.0
-#: The same for the tissue regime, whose decode (:func:`octcl.host.stage2.tissue.decode_tissue`) took 2.5 s on two
-#: cores (skin phantom, seed 5).
+#: The same for the tissue regime, whose decode (:func:`octcl.host.stage2.tissue.decode_tissue`) took 1.7 s on two
+#: cores (skin phantom, seed 5; 2.5 s before its pairs were chosen again only where a cell left its own).
 TISSUE_WRITE_RESERVE_S = 4.0
 #: Stage 1's seconds at least, however little of the budget is left.
 MIN_FIELD_BUDGET_S = 0.2
