@@ -64,8 +64,8 @@ VARIANTS = {
     "default": lambda schedule: schedule,
     **{f"lpips-every-{k}": (lambda schedule, k=k: dataclasses.replace(schedule, lpips_every=k)) for k in (2, 3)},
     "no-lpips": lambda schedule: dataclasses.replace(
-        schedule, phases=tuple(dataclasses.replace(p, lpips=False) for p in schedule.phases),
-        restarts=tuple(dataclasses.replace(p, lpips=False) for p in schedule.restarts)),
+        schedule, phases=tuple(dataclasses.replace(p, terms="no_lpips") for p in schedule.phases),
+        restarts=tuple(dataclasses.replace(p, terms="no_lpips") for p in schedule.restarts)),
     "oac-lpips-only": lambda schedule: dataclasses.replace(
         schedule, loss_weights=dataclasses.replace(schedule.loss_weights, struct_lpips=0.0, sc_lpips=0.0,
                                                    rsc_lpips=0.0)),

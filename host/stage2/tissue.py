@@ -169,6 +169,11 @@ def tissue_scale(weights: np.ndarray, taps: np.ndarray) -> tuple[float, np.ndarr
     return float(np.quantile(1.0 / (2.0 * per_line[lit]), SCALE_QUANTILE)), rows_sq
 
 
+def local_mean_energy(field: np.ndarray) -> np.ndarray:
+    """The local mean of |F|² (σ :data:`SHADOW_SMOOTHING` rows × lines) that each cell's pair aims its shadow at."""
+    return gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
+
+
 def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, scale_sq: float | None = None,
                   corrections: int = DECODE_CORRECTIONS) -> TissueDecode:
     """The exact decode's rows at tissue scale (module docstring).
@@ -183,8 +188,7 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
     corrections : int
         The exact decode's corrections.
     """
-    local_mean = gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
-    weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, shadow=local_mean)
+    weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, shadow=local_mean_energy(field))
     taps = ref.shadow_taps(config)
     estimated, rows_sq = tissue_scale(weights, taps)
     scale_sq = estimated if scale_sq is None else float(scale_sq)
@@ -211,4 +215,4 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
 
 
 __all__ = ["MAX_AMPLITUDE_SQ", "SCALE_QUANTILE", "TissueDecode", "decode_tissue", "layer_order", "light_above",
-           "tail_sums", "tissue_scale", "transmission_from_bottom"]
+           "local_mean_energy", "tail_sums", "tissue_scale", "transmission_from_bottom"]

@@ -361,19 +361,18 @@ class _Refiner:
         self.cpu_seconds = dict.fromkeys(self.timings, 0.0)
         self.threads = _ThreadChooser(available_cores()) if threads is None else _FixedThreads(threads)
 
-    def loss(self, lpips: bool) -> "DisplayLoss":
-        """The loss with or without its LPIPS terms, built at its first use.
+    def loss(self, terms: str) -> "DisplayLoss":
+        """The loss with a phase's terms (:attr:`~octcl.host.stage3.schedule.Phase.terms`), built at its first use.
 
         Building one costs 0.4–0.9 s (the LPIPS network and the target's
         maps and features), so a refinement that the deadline ends after its
         first exact evaluation (``octcl invert --time-budget 10``) builds none.
         """
-        if lpips not in self._losses:
+        if terms not in self._losses:
             from .loss import DisplayLoss
 
-            weights = self.schedule.loss_weights
-            self._losses[lpips] = DisplayLoss(self.scan, weights if lpips else weights.without_lpips())
-        return self._losses[lpips]
+            self._losses[terms] = DisplayLoss(self.scan, self.schedule.loss_weights.for_terms(terms))
+        return self._losses[terms]
 
     def _timed(self, name, function, *args, **kwargs):
         start, cpu_start = time.perf_counter(), time.process_time()
@@ -390,17 +389,17 @@ class _Refiner:
         self.clock.record("render", time.perf_counter() - start)
         return rendering
 
-    def gradients(self, rendering: Rendering, lpips: bool, lpips_mode: str = "compute"):
+    def gradients(self, rendering: Rendering, terms: str, lpips_mode: str = "compute"):
         """(loss value, ∂loss/∂u, ∂loss/∂z) of the last :meth:`render` (with for_adjoint).
 
-        ``lpips`` chooses the loss with or without its LPIPS terms;
-        ``lpips_mode`` is :class:`DisplayLoss`'s ``lpips`` argument (``compute``
-        for the loss without them).
+        ``terms`` chooses the loss (:meth:`loss`); ``lpips_mode`` is
+        :class:`DisplayLoss`'s ``lpips`` argument (``compute`` for a loss
+        without LPIPS terms).
         """
         self.threads.before_call()
         start = time.perf_counter()
-        value = self._timed("loss", self.loss(lpips), rendering.display, lpips_mode)
-        self.threads.after_call((lpips, lpips_mode), time.perf_counter() - start)
+        value = self._timed("loss", self.loss(terms), rendering.display, lpips_mode)
+        self.threads.after_call((terms, lpips_mode), time.perf_counter() - start)
         grad_u, grad_z = self._timed("adjoint", self.kernels.adjoint, display_vjp(rendering, value.grad_display))
         return value, grad_u, grad_z
 
@@ -822,7 +821,7 @@ class _Descent:
     def _adam_step(self, rendering: Rendering, phase: Phase, lpips_mode: str, operation: str, entry: dict) -> None:
         refiner, clock = self.refinement.refiner, self.refinement.clock
         start = time.perf_counter()
-        value, grad_u, grad_z = refiner.gradients(rendering, phase.lpips, lpips_mode)
+        value, grad_u, grad_z = refiner.gradients(rendering, phase.terms, lpips_mode)
         clock.record(operation, time.perf_counter() - start)
         entry["loss"] = value.loss
         start = time.perf_counter()

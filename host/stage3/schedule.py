@@ -24,6 +24,10 @@ STOP_RULES = ("restarts", "stall", "none")
 FALL_LR_FACTOR = 0.5
 #: Maps each LPIPS term compares (the key of :class:`LossWeights` → map name).
 LPIPS_TERMS = {"struct_lpips": "Struct", "oac_lpips": "OAC", "sc_lpips": "SC", "rsc_lpips": "RSC"}
+#: What a phase's loss computes (:attr:`Phase.terms`): every weighted term; all but the LPIPS ones (about a third
+#: of the cost); the pixel term alone (no maps, no network: a step of the tissue regime took 0.14 s where the
+#: full loss's took 0.52 s, docs/benchmarks.md "Stage 3 in the tissue regime").
+PHASE_TERMS = ("all", "no_lpips", "pixel")
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,15 @@ class LossWeights:
         """The same weights with every LPIPS term off (the cheap loss)."""
         return dataclasses.replace(self, **{name: 0.0 for name in LPIPS_TERMS})
 
+    def for_terms(self, terms: str) -> "LossWeights":
+        """The weights a phase of :attr:`Phase.terms` ``terms`` uses: these, :meth:`without_lpips`, or the pixel
+        term alone at weight 1 (alone, its weight only scales the gradient, which Adam's steps ignore)."""
+        if terms not in PHASE_TERMS:
+            raise ValueError(f"terms must be one of {', '.join(PHASE_TERMS)}, got {terms!r}")
+        if terms == "pixel":
+            return LossWeights(**{weight.name: float(weight.name == "pixel") for weight in dataclasses.fields(self)})
+        return self if terms == "all" else self.without_lpips()
+
 
 @dataclass(frozen=True)
 class Phase:
@@ -74,21 +87,28 @@ class Phase:
         Step length of the depths, in µm.
     lr_u : float
         Step length of u = ln E (dimensionless).
-    lpips : bool
-        Include the loss's LPIPS terms (else :meth:`LossWeights.without_lpips`,
-        about a third of the loss's cost).
+    terms : str
+        Which of the loss's terms it computes (:data:`PHASE_TERMS`, :meth:`LossWeights.for_terms`): ``all``,
+        ``no_lpips`` or ``pixel``.
     """
 
     iterations: int
     lr_z_um: float
     lr_u: float
-    lpips: bool = True
+    terms: str = "all"
 
     def __post_init__(self):
         if self.iterations < 0:
             raise ValueError(f"iterations must be ≥ 0, got {self.iterations}")
+        if self.terms not in PHASE_TERMS:
+            raise ValueError(f"terms must be one of {', '.join(PHASE_TERMS)}, got {self.terms!r}")
         if not (self.lr_z_um >= 0 and self.lr_u >= 0):
             raise ValueError(f"learning rates must be ≥ 0, got {self.lr_z_um}, {self.lr_u}")
+
+    @property
+    def lpips(self) -> bool:
+        """Whether the phase's loss has its LPIPS terms."""
+        return self.terms == "all"
 
 
 @dataclass(frozen=True)
@@ -266,5 +286,5 @@ class RefineSchedule:
         return dataclasses.replace(self, max_iterations=iterations)
 
 
-__all__ = ["FALL_LR_FACTOR", "LPIPS_TERMS", "LossWeights", "MAX_ENERGY_PCT", "MIN_GAIN", "Phase", "RefineSchedule",
-           "STOP_RULES"]
+__all__ = ["FALL_LR_FACTOR", "LPIPS_TERMS", "LossWeights", "MAX_ENERGY_PCT", "MIN_GAIN", "PHASE_TERMS", "Phase",
+           "RefineSchedule", "STOP_RULES"]

@@ -248,12 +248,34 @@ def test_lpips_gradient_is_computed_every_k_steps_of_a_run(stage2_phantom, layer
         return original(self, display, lpips)
 
     monkeypatch.setattr(DisplayLoss, "__call__", spy)
-    schedule = RefineSchedule(phases=(Phase(3, 0.001, 0.01), Phase(1, 0.001, 0.01, lpips=False),
+    schedule = RefineSchedule(phases=(Phase(3, 0.001, 0.01), Phase(1, 0.001, 0.01, terms="no_lpips"),
                                       Phase(1, 0.001, 0.01)), restarts=(Phase(1, 0.001, 0.01),),
                               loss_weights=STRUCT_WEIGHTS, lpips_every=2, min_gain=None)
     result = refine(stage2_phantom, layers_target, schedule, threads=2)
     assert result.iterations == 6
     assert calls == ["keep", "reuse", "keep", "none", "keep", "keep"]
+
+
+def test_a_phase_computes_only_its_terms(stage2_phantom, layers_target, monkeypatch):
+    """A ``pixel`` phase's loss has the pixel term alone, a ``no_lpips`` one every weighted term but LPIPS, an
+    ``all`` one every weighted term; the pixel phase moves the phantom towards its target."""
+    seen = []
+    original = DisplayLoss.__call__
+
+    def spy(self, display, lpips="compute"):
+        value = original(self, display, lpips)
+        seen.append(sorted(value.terms))
+        return value
+
+    monkeypatch.setattr(DisplayLoss, "__call__", spy)
+    weights = LossWeights()
+    schedule = RefineSchedule(phases=(Phase(4, 0.001, 0.02, terms="pixel"), Phase(1, 0.001, 0.01, terms="no_lpips"),
+                                      Phase(1, 0.001, 0.01)), restarts=(), loss_weights=weights, min_gain=None)
+    result = refine(stage2_phantom, layers_target, schedule, threads=2)
+    weighted = sorted(name for name, weight in vars(weights).items() if weight > 0)
+    assert seen == [["pixel"]] * 4 + [[name for name in weighted if "lpips" not in name], weighted]
+    pixel_losses = [entry["loss"] for entry in result.trace if entry["loss"] is not None][:4]
+    assert pixel_losses[-1] < pixel_losses[0]
 
 
 def test_a_stalled_run_stops(stage2_phantom, layers_target):
@@ -265,8 +287,8 @@ def test_a_stalled_run_stops(stage2_phantom, layers_target):
     has gained nothing over its parent, so the second is skipped. Without
     adaptive stopping every step runs.
     """
-    still = Phase(6, 0.0, 0.0, lpips=False)
-    schedule = RefineSchedule(phases=(still,), restarts=(Phase(4, 0.0, 0.0, lpips=False), still),
+    still = Phase(6, 0.0, 0.0, terms="no_lpips")
+    schedule = RefineSchedule(phases=(still,), restarts=(Phase(4, 0.0, 0.0, terms="no_lpips"), still),
                               score_every=2, patience=1)
     result = refine(stage2_phantom, layers_target, schedule, threads=2)
     assert result.iterations == 2 + 2 and result.stop_reason == "converged"
@@ -278,7 +300,7 @@ def test_a_stalled_run_stops(stage2_phantom, layers_target):
     assert max(entry["iteration"] for entry in whole.trace if entry["stage"] == "refine") == 6
     # Restarts that gain are repeated until the iterations the stalled main
     # run left are spent.
-    gaining = RefineSchedule(phases=(still,), restarts=(Phase(2, 0.01, 0.02, lpips=False),), score_every=2,
+    gaining = RefineSchedule(phases=(still,), restarts=(Phase(2, 0.01, 0.02, terms="no_lpips"),), score_every=2,
                              patience=1, min_gain=1e-12)
     repeated = refine(stage2_phantom, layers_target, gaining, threads=2)
     assert repeated.iterations == 2 + 3 * 2 == gaining.total_iterations and repeated.stop_reason == "schedule"
@@ -304,7 +326,7 @@ def test_a_fallen_main_run_goes_back_to_its_best(stage2_phantom, layers_target, 
         return original(self, adam, params, grads, lrs)
 
     monkeypatch.setattr(_Refiner, "step", spy)
-    wild = Phase(8, 2.0, 2.0, lpips=False)
+    wild = Phase(8, 2.0, 2.0, terms="no_lpips")
     schedule = RefineSchedule(phases=(wild,), restarts=(), score_every=2, max_falls=2)
     result = refine(stage2_phantom, layers_target, schedule, threads=1)
     assert result.falls == [2, 4] and result.iterations == 8
@@ -321,7 +343,7 @@ def test_a_fallen_main_run_goes_back_to_its_best(stage2_phantom, layers_target, 
 
     # A run that gains never falls, and the guard changes none of its bits.
     steps.clear()
-    gaining = RefineSchedule(phases=(Phase(6, 0.002, 0.02, lpips=False),), restarts=(), score_every=2)
+    gaining = RefineSchedule(phases=(Phase(6, 0.002, 0.02, terms="no_lpips"),), restarts=(), score_every=2)
     guarded = refine(stage2_phantom, layers_target, gaining, threads=1)
     unguarded = refine(stage2_phantom, layers_target, dataclasses.replace(gaining, max_falls=0), threads=1)
     assert guarded.falls == unguarded.falls == []
@@ -331,7 +353,7 @@ def test_a_fallen_main_run_goes_back_to_its_best(stage2_phantom, layers_target, 
 
 
 def test_target_score_stops_the_refinement(stage2_phantom, layers_target):
-    schedule = RefineSchedule(phases=(Phase(30, 0.01, 0.02, lpips=False),), restarts=(), score_every=2)
+    schedule = RefineSchedule(phases=(Phase(30, 0.01, 0.02, terms="no_lpips"),), restarts=(), score_every=2)
     reached = refine(stage2_phantom, layers_target, schedule, threads=1, target_score=0.01)
     assert reached.iterations == 0 and reached.stop_reason == "target score"
     # A target just above the start: the first checkpoint that reaches it ends the run.
@@ -350,7 +372,7 @@ def test_a_start_at_its_aimed_levels_is_not_refined(stage2_phantom, layers_targe
     """``aim``: a start that renders every aimed level stops at once (``ceiling``); one pixel off, it runs."""
     from octcl.render import render
 
-    schedule = RefineSchedule(phases=(Phase(2, 0.01, 0.02, lpips=False),), restarts=(), score_every=2)
+    schedule = RefineSchedule(phases=(Phase(2, 0.01, 0.02, terms="no_lpips"),), restarts=(), score_every=2)
     rendered = render(Phantom(saved_precision(stage2_phantom.x_um), saved_precision(stage2_phantom.y_um),
                               saved_precision(stage2_phantom.z_um), saved_precision(stage2_phantom.energy_pct))).levels
     at_aim = refine(stage2_phantom, layers_target, schedule, threads=1, aim=rendered)
@@ -382,7 +404,7 @@ def test_a_score_that_would_end_past_score_by_is_left_out(stage2_phantom, layers
     result says so (components None); at its aim the reason is ``ceiling``, elsewhere ``deadline``."""
     from octcl.render import render
 
-    schedule = RefineSchedule(phases=(Phase(2, 0.01, 0.02, lpips=False),), restarts=(), score_every=2)
+    schedule = RefineSchedule(phases=(Phase(2, 0.01, 0.02, terms="no_lpips"),), restarts=(), score_every=2)
     rendered = render(Phantom(saved_precision(stage2_phantom.x_um), saved_precision(stage2_phantom.y_um),
                               saved_precision(stage2_phantom.z_um), saved_precision(stage2_phantom.energy_pct))).levels
     for aim, reason in ((rendered, "ceiling"), (None, "deadline")):
@@ -417,6 +439,10 @@ def test_schedule_checks():
             RefineSchedule(max_falls=bad)
     with pytest.raises(ValueError, match="fall_tolerance"):
         RefineSchedule(fall_tolerance=float("nan"))
+    with pytest.raises(ValueError, match="terms"):
+        Phase(1, 0.01, 0.01, terms="lpips")
+    with pytest.raises(ValueError, match="terms"):
+        LossWeights().for_terms("struct")
     rules = {rule: RefineSchedule().with_stop_rule(rule) for rule in ("restarts", "stall", "none")}
     assert rules["restarts"] == RefineSchedule() and rules["none"] == RefineSchedule().fixed_length()
     assert (rules["stall"].patience, rules["stall"].min_gain) == (2, RefineSchedule().min_gain)
@@ -437,8 +463,8 @@ def test_truncated_schedule_runs_by_counts_alone(stage2_phantom, layers_target, 
     """
     import octcl.host.stage3.refine as refine_module
 
-    whole = RefineSchedule(phases=(Phase(2, 0.01, 0.02, lpips=False),),
-                           restarts=(Phase(4, 0.005, 0.01, lpips=False),), score_every=2)
+    whole = RefineSchedule(phases=(Phase(2, 0.01, 0.02, terms="no_lpips"),),
+                           restarts=(Phase(4, 0.005, 0.01, terms="no_lpips"),), score_every=2)
     schedule = whole.truncated(5)
     assert schedule.total_iterations == 5 and whole.total_iterations == 6
     results = [refine(stage2_phantom, layers_target, schedule, threads=1)]
@@ -459,7 +485,7 @@ def test_truncated_schedule_runs_by_counts_alone(stage2_phantom, layers_target, 
 def test_ceiling_fails_loudly(stage2_phantom, layers_target):
     from octcl.host.stage3.refine import TimeBudgetExceeded
 
-    schedule = RefineSchedule(phases=(Phase(5, 0.01, 0.02, lpips=False),), restarts=())
+    schedule = RefineSchedule(phases=(Phase(5, 0.01, 0.02, terms="no_lpips"),), restarts=())
     with pytest.raises(TimeBudgetExceeded, match="in stage 3 \\(refine\\) after 0 of 5 iterations"):
         refine(stage2_phantom, layers_target, schedule, ceiling=time.monotonic(), threads=1)
 

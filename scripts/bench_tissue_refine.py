@@ -1,0 +1,81 @@
+"""Stage 3 in the tissue regime: schedules compared from the same tissue-scale start, under the same clock.
+
+For each skin seed: the scanner's rendering of ``octcl phantom skin --seed N``
+is the target; ``octcl invert --regime tissue --iterations 0`` (stages 1–2
+only) gives the start once; then each schedule (:data:`SCHEDULES`) runs
+stage 3 from that start for ``--seconds``, one after the other in one
+process with the same threads, and the result's exact score and share of
+pixels at the target's level are printed, one JSON row per run:
+
+- ``full``: the physical regime's schedule (``RefineSchedule()``: every loss
+  term from the first step), the tissue regime's before it had its own;
+- ``pixel``: the pixel term alone at the rates of ``--pixel-rates``
+  (lr_z_um, lr_u), as long as the clock lets it;
+- ``tissue``: :data:`octcl.host.pipeline.invert.TISSUE_SCHEDULE`, the
+  tissue regime's default.
+
+Example::
+
+    python scripts/bench_tissue_refine.py --skin 5 --seconds 40 --out OUT
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from octcl._io import write_grey_png
+from octcl.host.pipeline.invert import TISSUE_SCHEDULE, invert
+from octcl.host.stage3.refine import Phase, RefineSchedule, refine
+from octcl.phantom import Phantom
+from octcl.render import render
+
+#: Schedules by name (module docstring); ``pixel`` takes its rates from the command line.
+SCHEDULES = ("full", "pixel", "tissue")
+
+
+def schedule_named(name: str, pixel_rates: tuple[float, float]) -> RefineSchedule:
+    if name == "full":
+        return RefineSchedule()
+    if name == "pixel":
+        return RefineSchedule(phases=(Phase(100_000, *pixel_rates, terms="pixel"),), restarts=())
+    return TISSUE_SCHEDULE
+
+
+def bench(seed: int, names: list[str], seconds: float, pixel_rates, out: Path) -> None:
+    levels = render(Phantom.skin(seed)).levels
+    target = out / f"skin_{seed}.png"
+    write_grey_png(target, levels)
+    start_path = out / f"skin_{seed}_start.txt"
+    invert(target, start_path, regime="tissue", iterations=0, threads=2)
+    start = Phantom.load(start_path)
+    for name in names:
+        began = time.perf_counter()
+        result = refine(start, levels, schedule_named(name, pixel_rates), deadline=time.monotonic() + seconds,
+                        threads=2)
+        exact_share = float(np.mean(render(result.phantom).levels == levels))
+        print(json.dumps({"skin": seed, "schedule": name, "seconds": round(time.perf_counter() - began, 1),
+                          "steps": result.iterations, "start_score": result.initial_components["mean"],
+                          "score": result.components["mean"], "exact_share": exact_share}), flush=True)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--skin", nargs="+", type=int, default=[5], help="skin phantom seeds (default 5)")
+    parser.add_argument("--schedules", nargs="+", choices=SCHEDULES, default=list(SCHEDULES))
+    parser.add_argument("--seconds", type=float, default=40.0, help="stage 3's clock per schedule (default 40)")
+    parser.add_argument("--pixel-rates", nargs=2, type=float, default=(0.001, 0.02), metavar=("LR_Z_UM", "LR_U"),
+                        help="the pixel schedule's learning rates (default 0.001 0.02)")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for seed in args.skin:
+        bench(seed, args.schedules, args.seconds, tuple(args.pixel_rates), args.out)
+
+
+if __name__ == "__main__":
+    main()
