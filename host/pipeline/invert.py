@@ -25,8 +25,9 @@ Stages 1–2 come in three regimes (:data:`REGIMES`):
 - ``tissue``: the linear regime's stage 1, then
   :func:`octcl.host.stage2.tissue.decode_tissue` (the rows at tissue scale,
   each divided by the light the rows above leave it, the scale from the
-  light left below the data) and stage 3 with shadowing on (the physical
-  regime's schedule). The result carries the phantom's figures as tissue
+  light left below the data) and stage 3 with shadowing on
+  (:data:`TISSUE_SCHEDULE`: the pixel term alone, then the full loss). The
+  result carries the phantom's figures as tissue
   (:func:`octcl.tissue.tissue_figures`).
 
 Measured on the development set: docs/benchmarks.md ("the linear regime").
