@@ -35,10 +35,26 @@ then :func:`octcl.host.stage2.tissue.decode_tissue`. Prints
    the field stage 1 finds carries lateral detail its rendering does not
    show, which the residual's way back across lines cannot reach.
 
+4. with ``--coupled-sweep``, lights and line field chosen together from
+   the bottom, cell row by cell row, on the least-norm twin: given the
+   light below a row (every A-scan), the row's line field is the one whose
+   rendering under the light above it is the target's column
+   (:func:`lateral_solver`, λ = 1e−5), and the light above is the light
+   below over one less the row's loss Σ_{i'} G_{i−i'}·ρ·|L_{i'}|² (ρ a
+   cell's rows' energy over |L|², from its pair; each cell's energy capped
+   at E = 100 % and a row's loss at 0.3, three passes per row); the light
+   at the bottom per A-scan is then corrected until the light at the top
+   is 1, as :func:`~octcl.host.stage2.tissue.decode_tissue` does per line
+   (four passes), and ρ is taken again from the exact decode of the line
+   field (two rounds). Prints the phantom's figures against the truth's and
+   the lines whose light at the top stays above 1: there the light the
+   sweep assumed is more than reaches, and the rendering is off.
+
 Example::
 
     python scripts/check_tissue_decode.py --skin 5 --scales 0.0001 0.1 0.3
     python scripts/check_tissue_decode.py --skin 5 --column-solve --regularisation 1e-3 1e-5
+    python scripts/check_tissue_decode.py --skin 5 --coupled-sweep 1 0.3 0.1
 """
 
 from __future__ import annotations
@@ -61,7 +77,7 @@ from octcl.host.stage2.exact import decoded_weights, phantom_of_rows, rendered_c
 from octcl.host.stage3.loss import ExactScore
 from octcl.phantom import Phantom
 from octcl.render import render
-from octcl.tissue import shadow_db, transmission_map
+from octcl.tissue import shadow_db, tissue_figures, transmission_map
 
 
 def light_mismatch_db(decoded: tissue.TissueDecode, rows: list[int]) -> None:
@@ -137,6 +153,61 @@ def column_solve(field: np.ndarray, lights: np.ndarray, regularisation: float, i
     return residuals
 
 
+#: Item 4's caps: a row's loss of light, a cell's energy (a² ≤ 1), passes per row, bottom passes, ρ rounds.
+SWEEP_MAX_LOSS, SWEEP_ROW_PASSES, SWEEP_BOTTOM_PASSES, SWEEP_ROUNDS = 0.3, 3, 4, 2
+
+
+def sweep_rows(column_target: np.ndarray, energy_ratio: np.ndarray, bottom: np.ndarray, solve):
+    """One sweep from the bottom (item 4): the light above each cell row (Nz + 1, Nx) and the line field (Nz, Nx)."""
+    taps = ref.shadow_taps(DEFAULT_CONFIG)
+    rows = column_target.shape[0]
+    light, line = np.empty((rows + 1, column_target.shape[1])), np.empty(column_target.shape, complex)
+    light[rows] = np.sqrt(bottom)
+    for row in range(rows - 1, -1, -1):
+        first = solve(column_target[row][None])[0]
+        # The light above as if it were the same on every line (decode_tissue's root), then the lines' own.
+        least = tissue.light_above(light[row + 1], convolve1d(energy_ratio[row] * np.abs(first) ** 2, taps,
+                                                              mode="constant"))
+        above = least
+        for _ in range(SWEEP_ROW_PASSES):
+            line[row] = solve((column_target[row] / above)[None])[0]
+            energy = np.minimum(energy_ratio[row] * np.abs(line[row]) ** 2, 1.0)
+            loss = np.minimum(convolve1d(energy, taps, mode="constant"), SWEEP_MAX_LOSS)
+            above = np.maximum(np.maximum(light[row + 1], 1e-300) / (1 - loss), least)
+        light[row] = above
+    return light, line
+
+
+def coupled_sweep(field: np.ndarray, truth: Phantom, levels: np.ndarray, scale_factor: float = 1.0) -> None:
+    """Item 4 of the module docstring, printed per round, at ``scale_factor`` times the decode's c²."""
+    config, solve, shadow = DEFAULT_CONFIG, lateral_solver(1e-5), tissue.local_mean_energy(field)
+    weights = decoded_weights(field, config, offsets=tissue.TISSUE_OFFSETS, shadow=shadow)
+    scale_sq = scale_factor * tissue.tissue_scale(weights, ref.shadow_taps(config))[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(np.abs(field) > 0, (weights**2).sum(0) / np.abs(field) ** 2, 1.0)
+    target = np.sqrt(scale_sq) * convolve1d(field, lateral_taps(), axis=1, mode="constant")
+    truth_figures, bottom = tissue_figures(truth, levels), np.zeros(config.a_scans)
+    for round_ in range(SWEEP_ROUNDS):
+        for _ in range(SWEEP_BOTTOM_PASSES):
+            light, line = sweep_rows(target, ratio, bottom, solve)
+            bottom = np.maximum(bottom + (1 - light[0] ** 2), 0.0)
+        light, line = sweep_rows(target, ratio, bottom, solve)
+        rows = decoded_weights(line, config, offsets=tissue.TISSUE_OFFSETS,
+                               shadow=shadow * scale_sq / np.maximum(light[:-1], 1e-6) ** 2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(np.abs(line) > 0, (rows**2).sum(0) / np.abs(line) ** 2, 1.0)
+        phantom = phantom_of_rows(np.minimum(rows, 1.0), config, tissue.TISSUE_OFFSETS)
+        figures = tissue_figures(phantom, levels)
+        bands = [round(mine / its, 2) for its, mine, signal in zip(
+            truth_figures["band_densities_pct"], figures["band_densities_pct"], truth_figures["bands_with_signal"])
+            if signal]
+        print(f"round {round_ + 1}: pixels at their level {np.mean(render(phantom).levels == levels):.3f}, lines "
+              f"with light above 1 at the top {int(np.sum(light[0] > 1 + 1e-3))} (largest {light[0].max():.3g}), "
+              f"shadow {figures['shadow_db']:.1f} dB (truth {truth_figures['shadow_db']:.1f}), bands / truth's "
+              f"{bands}, median E {figures['energy_pct']['p50']:.3f} % (truth "
+              f"{truth_figures['energy_pct']['p50']:.3f})", flush=True)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--skin", type=int, default=5, help="skin phantom seed (default 5)")
@@ -144,10 +215,19 @@ def main(argv=None) -> None:
     parser.add_argument("--scales", nargs="+", type=float, default=[0.0001, 0.1, 0.3, 1.0])
     parser.add_argument("--column-solve", action="store_true", help="item 3 of the description, instead of 1–2")
     parser.add_argument("--regularisation", nargs="+", type=float, default=[1e-3, 1e-5])
+    parser.add_argument("--coupled-sweep", nargs="*", type=float, metavar="FACTOR",
+                        help="item 4 of the description, instead of 1–2, at each FACTOR times the decode's c² "
+                             "(default 1)")
     args = parser.parse_args(argv)
     levels = render(Phantom.skin(args.skin)).levels
     exact = ExactScore(levels)
     field = linear_start(levels, lambda image: exact(image)["mean"]).field
+    if args.coupled_sweep is not None:
+        twin = least_norm_field(field, levels)
+        for factor in args.coupled_sweep or [1.0]:
+            print(f"c² × {factor:g}")
+            coupled_sweep(twin, Phantom.skin(args.skin), levels, factor)
+        return
     if args.column_solve:
         twin = least_norm_field(field, levels)
         lines = np.arange(DEFAULT_CONFIG.a_scans)
