@@ -12,16 +12,19 @@ pixels at the target's level are printed, one JSON row per run:
 - ``pixel``: the pixel term alone at the rates of ``--pixel-rates``
   (lr_z_um, lr_u), as long as the clock lets it;
 - ``tissue``: :data:`octcl.host.pipeline.invert.TISSUE_SCHEDULE`, the
-  tissue regime's default.
+  tissue regime's default, its pixel phase ``--pixel-steps`` long when
+  given.
 
 Example::
 
     python scripts/bench_tissue_refine.py --skin 5 --seconds 40 --out OUT
+    python scripts/bench_tissue_refine.py --skin 5 --schedules tissue --pixel-steps 500 --seconds 120 --out OUT
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -38,27 +41,32 @@ from octcl.render import render
 SCHEDULES = ("full", "pixel", "tissue")
 
 
-def schedule_named(name: str, pixel_rates: tuple[float, float]) -> RefineSchedule:
+def schedule_named(name: str, pixel_rates: tuple[float, float], pixel_steps: int | None) -> RefineSchedule:
     if name == "full":
         return RefineSchedule()
     if name == "pixel":
         return RefineSchedule(phases=(Phase(100_000, *pixel_rates, terms="pixel"),), restarts=())
-    return TISSUE_SCHEDULE
+    if pixel_steps is None:
+        return TISSUE_SCHEDULE
+    first, *rest = TISSUE_SCHEDULE.phases
+    return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, iterations=pixel_steps), *rest))
 
 
-def bench(seed: int, names: list[str], seconds: float, pixel_rates, out: Path) -> None:
+def bench(seed: int, names: list[str], seconds: float, pixel_rates, pixel_steps, out: Path) -> None:
     levels = render(Phantom.skin(seed)).levels
     target = out / f"skin_{seed}.png"
     write_grey_png(target, levels)
     start_path = out / f"skin_{seed}_start.txt"
-    invert(target, start_path, regime="tissue", iterations=0, threads=2)
+    if not start_path.exists():  # stages 1–2 once per seed and folder
+        invert(target, start_path, regime="tissue", iterations=0, threads=2)
     start = Phantom.load(start_path)
     for name in names:
         began = time.perf_counter()
-        result = refine(start, levels, schedule_named(name, pixel_rates), deadline=time.monotonic() + seconds,
-                        threads=2)
+        result = refine(start, levels, schedule_named(name, pixel_rates, pixel_steps),
+                        deadline=time.monotonic() + seconds, threads=2)
         exact_share = float(np.mean(render(result.phantom).levels == levels))
-        print(json.dumps({"skin": seed, "schedule": name, "seconds": round(time.perf_counter() - began, 1),
+        print(json.dumps({"skin": seed, "schedule": name, "pixel_rates": pixel_rates, "pixel_steps": pixel_steps,
+                          "seconds": round(time.perf_counter() - began, 1),
                           "steps": result.iterations, "start_score": result.initial_components["mean"],
                           "score": result.components["mean"], "exact_share": exact_share}), flush=True)
 
@@ -70,11 +78,12 @@ def main(argv=None) -> None:
     parser.add_argument("--seconds", type=float, default=40.0, help="stage 3's clock per schedule (default 40)")
     parser.add_argument("--pixel-rates", nargs=2, type=float, default=(0.001, 0.02), metavar=("LR_Z_UM", "LR_U"),
                         help="the pixel schedule's learning rates (default 0.001 0.02)")
+    parser.add_argument("--pixel-steps", type=int, help="the tissue schedule's pixel steps (default its own, 250)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     for seed in args.skin:
-        bench(seed, args.schedules, args.seconds, tuple(args.pixel_rates), args.out)
+        bench(seed, args.schedules, args.seconds, tuple(args.pixel_rates), args.pixel_steps, args.out)
 
 
 if __name__ == "__main__":

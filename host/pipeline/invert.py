@@ -121,10 +121,10 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
                                  restarts=(Phase(10, 0.00005, 0.0005),) * 10, score_every=10)
 #: Stage 3's schedule in the tissue regime: the pixel term alone first, then the full loss at short steps. The
 #: tissue decode's start renders 40–60 % of pixels at their level (shadowing between neighbouring A-scans it does
-#: not compensate): the full loss took skin 5's from 0.682 to 0.9964 (59 % exact) in 40 s, the pixel term alone
-#: (0.14 s a step, not 0.52) to 0.9982 (84 %), at the best of eight (lr_z_um, lr_u) pairs, (0.001, 0.02); 250
-#: such steps and then the full loss at (0.0005, 0.005) reached 0.9991 in 55 s, 500 and then the full loss
-#: 0.9994 in 120 s (docs/benchmarks.md, "Stage 3 in the tissue regime").
+#: not compensate): on skins 6 and 7 the full loss took it to 0.9954 and 0.9946 in 40 s (60–61 % exact), the pixel
+#: term alone (0.13–0.14 s a step, not 0.50–0.56) to 0.9975 and 0.9977 (84–85 %); its rates (0.001, 0.02) are the
+#: best of eight pairs on skin 5; there 250 such steps and then the full loss at (0.0005, 0.005) reached 0.9992
+#: in 55 s, 500 and then the full loss 0.9994 in 120 s (docs/benchmarks.md, "Stage 3 in the tissue regime").
 TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(250, 0.001, 0.02, terms="pixel"), Phase(250, 0.0005, 0.005)),
                                  restarts=(Phase(60, 0.0005, 0.005), Phase(60, 0.00025, 0.0025)))
 #: torch's thread count in a fixed-schedule run unless given. The thread
