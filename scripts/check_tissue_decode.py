@@ -71,7 +71,7 @@ from octcl.host.stage1.start import linear_start
 from octcl.host.stage2 import tissue
 from octcl.host.stage1.backend import make_backend
 from octcl.host.stage1.ceiling import aimed_levels
-from octcl.host.stage1.operator import FieldOperator
+from octcl.host.stage1.operator import FieldOperator, lateral_taps
 from octcl.host.stage1.solve import FieldSolve
 from octcl.host.stage2.exact import decoded_weights, phantom_of_rows, rendered_cells
 from octcl.host.stage3.loss import ExactScore
@@ -86,7 +86,8 @@ def light_mismatch_db(decoded: tissue.TissueDecode, rows: list[int]) -> None:
     for row in rows:
         both = (made[row] > 0) & (assumed[row] > 0)
         difference = 20 * np.log10(made[row, both] / assumed[row, both])
-        print(f"row {row}: made/assumed light, dB (5, 50, 95 %): {np.round(np.quantile(difference, [0.05, 0.5, 0.95]), 2)}")
+        quantiles = np.round(np.quantile(difference, [0.05, 0.5, 0.95]), 2)
+        print(f"row {row}: made/assumed light, dB (5, 50, 95 %): {quantiles}")
 
 
 def top_down_rows(weights: np.ndarray, scale_sq: float) -> np.ndarray:
@@ -104,16 +105,9 @@ def top_down_rows(weights: np.ndarray, scale_sq: float) -> np.ndarray:
     return rows.reshape(weights.shape) * (weights > 0)
 
 
-def lateral_taps() -> np.ndarray:
-    """B_d = e^{−(d·Δx)²/w0²} over the lines a scatterer on the A-scan lines reaches (the contribution window)."""
-    config = DEFAULT_CONFIG
-    reach = int(np.sqrt(ref.CONTRIBUTION_RADIUS_SQ) * config.beam_radius_um / config.lateral_pitch_um)
-    offsets_um = np.arange(-reach, reach + 1) * config.lateral_pitch_um
-    return ref.beam_weight(offsets_um, np.zeros_like(offsets_um), config.beam_radius_um)
-
-
 def lateral_solver(regularisation: float):
-    """x ↦ argmin ‖B·x − r‖² + λ‖x‖² across lines (B the truncated convolution with :func:`lateral_taps`), per row."""
+    """x ↦ argmin ‖B·x − r‖² + λ‖x‖² across lines, per row: B the truncated convolution with the beam's lateral
+    taps (:func:`~octcl.host.stage1.operator.lateral_taps`)."""
     taps, lines = lateral_taps(), DEFAULT_CONFIG.a_scans
     reach = taps.size // 2
     matrix = sum(np.diag(np.full(lines - abs(k), taps[k + reach]), k) for k in range(-reach, reach + 1))

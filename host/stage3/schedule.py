@@ -25,9 +25,14 @@ FALL_LR_FACTOR = 0.5
 #: Maps each LPIPS term compares (the key of :class:`LossWeights` → map name).
 LPIPS_TERMS = {"struct_lpips": "Struct", "oac_lpips": "OAC", "sc_lpips": "SC", "rsc_lpips": "RSC"}
 #: What a phase's loss computes (:attr:`Phase.terms`): every weighted term; all but the LPIPS ones (about a third
-#: of the cost); the pixel term alone (no maps, no network: a step of the tissue regime took 0.14 s where the
-#: full loss's took 0.52 s, docs/benchmarks.md "Stage 3 in the tissue regime").
+#: of the cost); the pixel term alone (no maps, no network: a step of the tissue regime took 0.13–0.14 s where the
+#: full loss's took 0.50–0.56 s, docs/benchmarks.md "Stage 3 in the tissue regime").
 PHASE_TERMS = ("all", "no_lpips", "pixel")
+
+
+def _check_terms(terms) -> None:
+    if terms not in PHASE_TERMS:
+        raise ValueError(f"terms must be one of {', '.join(PHASE_TERMS)}, got {terms!r}")
 
 
 @dataclass(frozen=True)
@@ -68,8 +73,7 @@ class LossWeights:
     def for_terms(self, terms: str) -> "LossWeights":
         """The weights a phase of :attr:`Phase.terms` ``terms`` uses: these, :meth:`without_lpips`, or the pixel
         term alone at weight 1 (alone, its weight only scales the gradient, which Adam's steps ignore)."""
-        if terms not in PHASE_TERMS:
-            raise ValueError(f"terms must be one of {', '.join(PHASE_TERMS)}, got {terms!r}")
+        _check_terms(terms)
         if terms == "pixel":
             return LossWeights(**{weight.name: float(weight.name == "pixel") for weight in dataclasses.fields(self)})
         return self if terms == "all" else self.without_lpips()
@@ -100,8 +104,7 @@ class Phase:
     def __post_init__(self):
         if self.iterations < 0:
             raise ValueError(f"iterations must be ≥ 0, got {self.iterations}")
-        if self.terms not in PHASE_TERMS:
-            raise ValueError(f"terms must be one of {', '.join(PHASE_TERMS)}, got {self.terms!r}")
+        _check_terms(self.terms)
         if not (self.lr_z_um >= 0 and self.lr_u >= 0):
             raise ValueError(f"learning rates must be ≥ 0, got {self.lr_z_um}, {self.lr_u}")
 
