@@ -50,16 +50,26 @@ then :func:`octcl.host.stage2.tissue.decode_tissue`. Prints
    the lines whose light at the top stays above 1: there the light the
    sweep assumed is more than reaches, and the rendering is off.
 
+5. with ``--quantiles``, the decode at each quantile of the lines' own c²
+   (:data:`~octcl.host.stage2.tissue.SCALE_QUANTILE`): its shadow at the
+   bottom of the visible tissue and each band's energy density against the
+   truth's, the share of pixels at their level and the lines short of light;
+   with ``--refine SECONDS``, also stage 3
+   (:data:`~octcl.host.pipeline.invert.TISSUE_SCHEDULE`, two threads) from
+   each decode for that long, and the same figures with its exact score.
+
 Example::
 
     python scripts/check_tissue_decode.py --skin 5 --scales 0.0001 0.1 0.3
     python scripts/check_tissue_decode.py --skin 5 --column-solve --regularisation 1e-3 1e-5
     python scripts/check_tissue_decode.py --skin 5 --coupled-sweep 1 0.3 0.1
+    python scripts/check_tissue_decode.py --skin 5 --quantiles 0.5 0.75 0.9 0.95 1 --refine 45
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 import scipy.linalg
@@ -74,7 +84,9 @@ from octcl.host.stage1.ceiling import aimed_levels
 from octcl.host.stage1.operator import FieldOperator, lateral_taps
 from octcl.host.stage1.solve import FieldSolve
 from octcl.host.stage2.exact import decoded_weights, phantom_of_rows, rendered_cells
+from octcl.host.pipeline.invert import TISSUE_SCHEDULE
 from octcl.host.stage3.loss import ExactScore
+from octcl.host.stage3.refine import refine
 from octcl.phantom import Phantom
 from octcl.render import render
 from octcl.tissue import shadow_db, tissue_figures, transmission_map
@@ -202,6 +214,29 @@ def coupled_sweep(field: np.ndarray, truth: Phantom, levels: np.ndarray, scale_f
               f"{truth_figures['energy_pct']['p50']:.3f})", flush=True)
 
 
+def figures_line(phantom: Phantom, truth: Phantom, levels: np.ndarray) -> str:
+    """Shadow, bands over the truth's, median E and the share of pixels at their level, as one line."""
+    mine, its = tissue_figures(phantom, levels), tissue_figures(truth, levels)
+    bands = [round(ours / theirs, 2) for theirs, ours, signal in zip(
+        its["band_densities_pct"], mine["band_densities_pct"], its["bands_with_signal"]) if signal]
+    return (f"shadow {mine['shadow_db']:.1f} dB (truth {its['shadow_db']:.1f}), bands / truth's {bands}, median E "
+            f"{mine['energy_pct']['p50']:.3g} % (truth {its['energy_pct']['p50']:.3g}), pixels at their level "
+            f"{np.mean(render(phantom).levels == levels):.3f}")
+
+
+def quantile_choice(field: np.ndarray, truth: Phantom, levels: np.ndarray, quantiles: list[float],
+                    refine_s: float | None) -> None:
+    """Item 5 of the module docstring."""
+    for quantile in quantiles:
+        decoded = tissue.decode_tissue(field, DEFAULT_CONFIG, scale_quantile=quantile)
+        print(f"quantile {quantile:g}: decode {figures_line(decoded.phantom, truth, levels)}, lines short of light "
+              f"{decoded.short_lines}", flush=True)
+        if refine_s is not None:
+            result = refine(decoded.phantom, levels, TISSUE_SCHEDULE, deadline=time.monotonic() + refine_s, threads=2)
+            print(f"quantile {quantile:g}: stage 3 for {refine_s:g} s ({result.iterations} steps): score "
+                  f"{result.components['mean']:.5f}, {figures_line(result.phantom, truth, levels)}", flush=True)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--skin", type=int, default=5, help="skin phantom seed (default 5)")
@@ -212,10 +247,15 @@ def main(argv=None) -> None:
     parser.add_argument("--coupled-sweep", nargs="*", type=float, metavar="FACTOR",
                         help="item 4 of the description, instead of 1–2, at each FACTOR times the decode's c² "
                              "(default 1)")
+    parser.add_argument("--quantiles", nargs="+", type=float, help="item 5 of the description, instead of 1–2")
+    parser.add_argument("--refine", type=float, metavar="SECONDS", help="with --quantiles: stage 3 from each decode")
     args = parser.parse_args(argv)
     levels = render(Phantom.skin(args.skin)).levels
     exact = ExactScore(levels)
     field = linear_start(levels, lambda image: exact(image)["mean"]).field
+    if args.quantiles:
+        quantile_choice(field, Phantom.skin(args.skin), levels, args.quantiles, args.refine)
+        return
     if args.coupled_sweep is not None:
         twin = least_norm_field(field, levels)
         for factor in args.coupled_sweep or [1.0]:
