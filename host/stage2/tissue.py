@@ -82,8 +82,8 @@ MAX_AMPLITUDE_SQ = 1.0
 #: 30.5 and 30.6 dB at the bottom of the visible tissue (the truth's 29.8), the deepest band's n·E 0.45, 0.74,
 #: 0.89, 0.95 and 1.0 of the truth's, and 43–50 % of pixels at their level; 45 s of stage 3 (the tissue
 #: schedule) took them to 0.99911, 0.99931, 0.99944, 0.99956 and 0.99966, 79–89 % of pixels at their level:
-#: more shadow, closer bands and a better score up to the largest line's own c². That one hangs on the dimmest
-#: line with signal (a column under a vessel's shadow would set it), so the choice is the 0.95 quantile
+#: more shadow, closer bands and a better score up to the largest line's own c². That one is a single line's
+#: (the dimmest with signal), so the choice is a quantile that a few lines cannot move, 0.95
 #: (``scripts/check_tissue_decode.py --skin 5 --quantiles 0.5 0.75 0.9 0.95 1 --refine 45``, docs/benchmarks.md).
 SCALE_QUANTILE = 0.95
 #: Passes correcting each line's light at the bottom until its light at the top is 1.
