@@ -46,7 +46,9 @@ then :func:`octcl.host.stage2.tissue.decode_tissue`. Prints
    at the bottom per A-scan is then corrected until the light at the top
    is 1, as :func:`~octcl.host.stage2.tissue.decode_tissue` does per line
    (four passes), and ρ is taken again from the exact decode of the line
-   field (two rounds). Prints the phantom's figures against the truth's and
+   field (two rounds), at ``FACTOR`` times the median of the lines' own
+   c² (:func:`~octcl.host.stage2.tissue.tissue_scale` at 0.5, the decode's
+   scale when it was measured). Prints the phantom's figures against the truth's and
    the lines whose light at the top stays above 1: there the light the
    sweep assumed is more than reaches, and the rendering is off.
 
@@ -185,14 +187,16 @@ def sweep_rows(column_target: np.ndarray, energy_ratio: np.ndarray, bottom: np.n
 
 
 def coupled_sweep(field: np.ndarray, truth: Phantom, levels: np.ndarray, scale_factor: float = 1.0) -> None:
-    """Item 4 of the module docstring, printed per round, at ``scale_factor`` times the decode's c²."""
+    """Item 4 of the module docstring, printed per round, at ``scale_factor`` times the median of the lines' own c²."""
     config, solve, shadow = DEFAULT_CONFIG, lateral_solver(1e-5), tissue.local_mean_energy(field)
     weights = decoded_weights(field, config, offsets=tissue.TISSUE_OFFSETS, shadow=shadow)
-    scale_sq = scale_factor * tissue.tissue_scale(weights, ref.shadow_taps(config))[0]
+    # The factor multiplies the median of the lines' own c², the decode's scale when item 4 was measured
+    # (docs/benchmarks.md), not SCALE_QUANTILE's.
+    scale_sq = scale_factor * tissue.tissue_scale(weights, ref.shadow_taps(config), 0.5)[0]
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(np.abs(field) > 0, (weights**2).sum(0) / np.abs(field) ** 2, 1.0)
     target = np.sqrt(scale_sq) * convolve1d(field, lateral_taps(), axis=1, mode="constant")
-    truth_figures, bottom = tissue_figures(truth, levels), np.zeros(config.a_scans)
+    bottom = np.zeros(config.a_scans)
     for round_ in range(SWEEP_ROUNDS):
         for _ in range(SWEEP_BOTTOM_PASSES):
             light, line = sweep_rows(target, ratio, bottom, solve)
@@ -203,15 +207,8 @@ def coupled_sweep(field: np.ndarray, truth: Phantom, levels: np.ndarray, scale_f
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(np.abs(line) > 0, (rows**2).sum(0) / np.abs(line) ** 2, 1.0)
         phantom = phantom_of_rows(np.minimum(rows, 1.0), config, tissue.TISSUE_OFFSETS)
-        figures = tissue_figures(phantom, levels)
-        bands = [round(mine / its, 2) for its, mine, signal in zip(
-            truth_figures["band_densities_pct"], figures["band_densities_pct"], truth_figures["bands_with_signal"])
-            if signal]
-        print(f"round {round_ + 1}: pixels at their level {np.mean(render(phantom).levels == levels):.3f}, lines "
-              f"with light above 1 at the top {int(np.sum(light[0] > 1 + 1e-3))} (largest {light[0].max():.3g}), "
-              f"shadow {figures['shadow_db']:.1f} dB (truth {truth_figures['shadow_db']:.1f}), bands / truth's "
-              f"{bands}, median E {figures['energy_pct']['p50']:.3f} % (truth "
-              f"{truth_figures['energy_pct']['p50']:.3f})", flush=True)
+        print(f"round {round_ + 1}: lines with light above 1 at the top {int(np.sum(light[0] > 1 + 1e-3))} (largest "
+              f"{light[0].max():.3g}), {figures_line(phantom, truth, levels)}", flush=True)
 
 
 def figures_line(phantom: Phantom, truth: Phantom, levels: np.ndarray) -> str:
@@ -245,8 +242,8 @@ def main(argv=None) -> None:
     parser.add_argument("--column-solve", action="store_true", help="item 3 of the description, instead of 1–2")
     parser.add_argument("--regularisation", nargs="+", type=float, default=[1e-3, 1e-5])
     parser.add_argument("--coupled-sweep", nargs="*", type=float, metavar="FACTOR",
-                        help="item 4 of the description, instead of 1–2, at each FACTOR times the decode's c² "
-                             "(default 1)")
+                        help="item 4 of the description, instead of 1–2, at each FACTOR times the median of the "
+                             "lines' own c² (default 1)")
     parser.add_argument("--quantiles", nargs="+", type=float, help="item 5 of the description, instead of 1–2")
     parser.add_argument("--refine", type=float, metavar="SECONDS", help="with --quantiles: stage 3 from each decode")
     args = parser.parse_args(argv)
