@@ -186,15 +186,20 @@ def sweep_rows(column_target: np.ndarray, energy_ratio: np.ndarray, bottom: np.n
     return light, line
 
 
-def coupled_sweep(field: np.ndarray, truth: Phantom, levels: np.ndarray, scale_factor: float = 1.0) -> None:
+def energy_ratio(rows: np.ndarray, line_field: np.ndarray) -> np.ndarray:
+    """ρ per cell: its rows' Σ w² over |L|² (1 where L = 0)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.abs(line_field) > 0, (rows**2).sum(0) / np.abs(line_field) ** 2, 1.0)
+
+
+def coupled_sweep(field: np.ndarray, truth_figures: dict, levels: np.ndarray, scale_factor: float = 1.0) -> None:
     """Item 4 of the module docstring, printed per round, at ``scale_factor`` times the median of the lines' own c²."""
     config, solve, shadow = DEFAULT_CONFIG, lateral_solver(1e-5), tissue.local_mean_energy(field)
     weights = decoded_weights(field, config, offsets=tissue.TISSUE_OFFSETS, shadow=shadow)
     # The factor multiplies the median of the lines' own c², the decode's scale when item 4 was measured
     # (docs/benchmarks.md), not SCALE_QUANTILE's.
-    scale_sq = scale_factor * tissue.tissue_scale(weights, ref.shadow_taps(config), 0.5)[0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(np.abs(field) > 0, (weights**2).sum(0) / np.abs(field) ** 2, 1.0)
+    scale_sq = scale_factor * tissue.tissue_scale(weights, ref.shadow_taps(config), 0.5)
+    ratio = energy_ratio(weights, field)
     target = np.sqrt(scale_sq) * convolve1d(field, lateral_taps(), axis=1, mode="constant")
     bottom = np.zeros(config.a_scans)
     for round_ in range(SWEEP_ROUNDS):
@@ -204,16 +209,16 @@ def coupled_sweep(field: np.ndarray, truth: Phantom, levels: np.ndarray, scale_f
         light, line = sweep_rows(target, ratio, bottom, solve)
         rows = decoded_weights(line, config, offsets=tissue.TISSUE_OFFSETS,
                                shadow=shadow * scale_sq / np.maximum(light[:-1], 1e-6) ** 2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(np.abs(line) > 0, (rows**2).sum(0) / np.abs(line) ** 2, 1.0)
+        ratio = energy_ratio(rows, line)
         phantom = phantom_of_rows(np.minimum(rows, 1.0), config, tissue.TISSUE_OFFSETS)
         print(f"round {round_ + 1}: lines with light above 1 at the top {int(np.sum(light[0] > 1 + 1e-3))} (largest "
-              f"{light[0].max():.3g}), {figures_line(phantom, truth, levels)}", flush=True)
+              f"{light[0].max():.3g}), {figures_line(phantom, truth_figures, levels)}", flush=True)
 
 
-def figures_line(phantom: Phantom, truth: Phantom, levels: np.ndarray) -> str:
-    """Shadow, bands over the truth's, median E and the share of pixels at their level, as one line."""
-    mine, its = tissue_figures(phantom, levels), tissue_figures(truth, levels)
+def figures_line(phantom: Phantom, its: dict, levels: np.ndarray) -> str:
+    """Shadow, bands over the truth's, median E and the share of pixels at their level, as one line; ``its`` the
+    truth's :func:`~octcl.tissue.tissue_figures`."""
+    mine = tissue_figures(phantom, levels)
     bands = [round(ours / theirs, 2) for theirs, ours, signal in zip(
         its["band_densities_pct"], mine["band_densities_pct"], its["bands_with_signal"]) if signal]
     return (f"shadow {mine['shadow_db']:.1f} dB (truth {its['shadow_db']:.1f}), bands / truth's {bands}, median E "
@@ -221,17 +226,18 @@ def figures_line(phantom: Phantom, truth: Phantom, levels: np.ndarray) -> str:
             f"{np.mean(render(phantom).levels == levels):.3f}")
 
 
-def quantile_choice(field: np.ndarray, truth: Phantom, levels: np.ndarray, quantiles: list[float],
+def quantile_choice(field: np.ndarray, truth_figures: dict, levels: np.ndarray, quantiles: list[float],
                     refine_s: float | None) -> None:
     """Item 5 of the module docstring."""
     for quantile in quantiles:
         decoded = tissue.decode_tissue(field, DEFAULT_CONFIG, scale_quantile=quantile)
-        print(f"quantile {quantile:g}: decode {figures_line(decoded.phantom, truth, levels)}, lines short of light "
-              f"{decoded.short_lines}", flush=True)
+        print(f"quantile {quantile:g}: decode {figures_line(decoded.phantom, truth_figures, levels)}, lines short "
+              f"of light {decoded.short_lines}", flush=True)
         if refine_s is not None:
             result = refine(decoded.phantom, levels, TISSUE_SCHEDULE, deadline=time.monotonic() + refine_s, threads=2)
             print(f"quantile {quantile:g}: stage 3 for {refine_s:g} s ({result.iterations} steps): score "
-                  f"{result.components['mean']:.5f}, {figures_line(result.phantom, truth, levels)}", flush=True)
+                  f"{result.components['mean']:.5f}, {figures_line(result.phantom, truth_figures, levels)}",
+                  flush=True)
 
 
 def main(argv=None) -> None:
@@ -251,13 +257,14 @@ def main(argv=None) -> None:
     exact = ExactScore(levels)
     field = linear_start(levels, lambda image: exact(image)["mean"]).field
     if args.quantiles:
-        quantile_choice(field, Phantom.skin(args.skin), levels, args.quantiles, args.refine)
+        quantile_choice(field, tissue_figures(Phantom.skin(args.skin), levels), levels, args.quantiles, args.refine)
         return
     if args.coupled_sweep is not None:
         twin = least_norm_field(field, levels)
+        truth = tissue_figures(Phantom.skin(args.skin), levels)
         for factor in args.coupled_sweep or [1.0]:
             print(f"c² × {factor:g}")
-            coupled_sweep(twin, Phantom.skin(args.skin), levels, factor)
+            coupled_sweep(twin, truth, levels, factor)
         return
     if args.column_solve:
         twin = least_norm_field(field, levels)

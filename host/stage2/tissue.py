@@ -172,15 +172,15 @@ def tail_sums(rows_sq: np.ndarray) -> np.ndarray:
     return tails
 
 
-def tissue_scale(weights: np.ndarray, taps: np.ndarray, quantile: float = SCALE_QUANTILE) -> tuple[float, np.ndarray]:
-    """c² (the ``quantile`` of the lines' own 1/(2·(ΣI + tail)) over the lines with signal) and the shadow-weighted
-    row sums (Nz, Nx) of w² it was estimated from."""
+def tissue_scale(weights: np.ndarray, taps: np.ndarray, quantile: float = SCALE_QUANTILE) -> float:
+    """c²: the ``quantile`` of the lines' own 1/(2·(ΣI + tail)) over the lines with signal, ΣI each line's
+    shadow-weighted Σ w² (``weights`` (D, Nz, Nx), ``taps`` the shadow's lateral weights G)."""
     if not 0 <= quantile <= 1:
         raise ValueError(f"the scale's quantile must be in [0, 1], got {quantile!r}")
     rows_sq = convolve1d((weights**2).sum(axis=0), taps, axis=1, mode="constant")
     per_line = rows_sq.sum(axis=0) + tail_sums(rows_sq)
     lit = per_line > 0
-    return float(np.quantile(1.0 / (2.0 * per_line[lit]), quantile)), rows_sq
+    return float(np.quantile(1.0 / (2.0 * per_line[lit]), quantile))
 
 
 def local_mean_energy(field: np.ndarray) -> np.ndarray:
@@ -206,8 +206,7 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
     """
     weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, shadow=local_mean_energy(field))
     taps = ref.shadow_taps(config)
-    estimated, rows_sq = tissue_scale(weights, taps, scale_quantile)
-    scale_sq = estimated if scale_sq is None else float(scale_sq)
+    scale_sq = tissue_scale(weights, taps, scale_quantile) if scale_sq is None else float(scale_sq)
     if not scale_sq > 0:
         raise ValueError(f"the scale c² must be positive, got {scale_sq!r}")
     order = layer_order(config)

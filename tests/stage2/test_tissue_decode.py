@@ -105,9 +105,7 @@ def test_the_scale_is_a_quantile_of_the_lines_own():
     # sums fewer neighbours, so it is neither the brightest nor the dimmest.
     weights[0] = decay * np.where((lines % 64 < 32) | (lines >= config.a_scans - 32), 2.0, 1.0)
     taps = ref.shadow_taps(config)
-    brightest, rows_sq = tissue_scale(weights, taps, 0.0)
-    dimmest, _ = tissue_scale(weights, taps, 1.0)
-    middle, _ = tissue_scale(weights, taps, 0.5)
+    brightest, middle, dimmest = (tissue_scale(weights, taps, quantile) for quantile in (0.0, 0.5, 1.0))
     assert brightest < middle <= dimmest
     np.testing.assert_allclose(dimmest / brightest, 4.0, rtol=0.02)
     with pytest.raises(ValueError, match="quantile"):
