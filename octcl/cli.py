@@ -244,7 +244,7 @@ def _invert_lines(result: dict) -> list[str]:
     """Human summary of one inversion (the keys of :class:`octcl.host.pipeline.invert.InvertResult`)."""
     seconds = result["seconds"]
     stages = ", ".join(f"{name} {format_seconds(seconds[name])}"
-                       for name in ("field", "decode", "setup", "refine") if name in seconds)
+                       for name in ("field", "twin", "decode", "setup", "refine") if name in seconds)
     ending = ("fixed schedule, " if result["fixed_schedule"] else "deadline mode, ") + {
         "schedule": "schedule completed", "converged": "stopped: converged",
         "target score": "stopped: target score reached", "deadline": "stopped by the time budget",
@@ -382,8 +382,8 @@ def _cmd_invert(args) -> int:
             FieldSchedule.parse(args.field_schedule)
         except ValueError as exc:
             raise UsageError(f"--field-schedule: {exc}") from None
-        if args.regime != "linear":
-            raise UsageError("--field-schedule is the linear regime's; the physical regime's stage 1 is "
+        if args.regime == "physical":
+            raise UsageError("--field-schedule is the linear and tissue regimes'; the physical regime's stage 1 is "
                              "--field-iterations")
     if args.regime != REGIMES[0]:  # defaults are left out, so earlier batches still resume
         schedule["regime"] = args.regime

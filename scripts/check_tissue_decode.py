@@ -2,7 +2,10 @@
 
 For a skin phantom (``octcl phantom skin --seed N``, rendered by the
 scanner): stage 1's field (:func:`octcl.host.stage1.start.linear_start`),
-then :func:`octcl.host.stage2.tissue.decode_tissue`. Prints
+its least-norm twin (:func:`octcl.host.stage1.start.least_norm_twin`, the
+field the tissue regime decodes; stage 1's own with ``--stage1-field``) and
+the spread of its lines' energies, then
+:func:`octcl.host.stage2.tissue.decode_tissue`. Prints
 
 1. per depth row (``--rows``), the decode's own transmission of each line
    (the first layer of the cell row) against the transmission its phantom
@@ -29,11 +32,10 @@ then :func:`octcl.host.stage2.tissue.decode_tissue`. Prints
    and taken back across lines by Tikhonov-regularised least squares with
    the scanner's lateral weights B (5 taps; the banded normal equations
    (BᵀB + λ)·x = Bᵀ·r, λ = ``--regularisation``). Prints the largest
-   residual over the largest column value per iteration. The field is
-   first replaced by its least-norm twin (:meth:`FieldOperator.pseudo_inverse`
-   of its own rendering, then the hinge fit back onto the target's levels):
-   the field stage 1 finds carries lateral detail its rendering does not
-   show, which the residual's way back across lines cannot reach.
+   residual over the largest column value per iteration, on the
+   least-norm twin: the field stage 1 finds carries lateral detail its
+   rendering does not show, which the residual's way back across lines
+   cannot reach.
 
 4. with ``--coupled-sweep``, lights and line field chosen together from
    the bottom, cell row by cell row, on the least-norm twin: given the
@@ -56,7 +58,8 @@ then :func:`octcl.host.stage2.tissue.decode_tissue`. Prints
    (:data:`~octcl.host.stage2.tissue.SCALE_QUANTILE`): its shadow at the
    bottom of the visible tissue and each band's energy density against the
    truth's, the share of pixels at their level and the lines short of light;
-   with ``--refine SECONDS``, also stage 3
+   with ``--target PNG``, the same on a real(-like) target, without a
+   truth's figures; with ``--refine SECONDS``, also stage 3
    (:data:`~octcl.host.pipeline.invert.TISSUE_SCHEDULE`, two threads) from
    each decode for that long, and the same figures with its exact score.
 
@@ -66,12 +69,15 @@ Example::
     python scripts/check_tissue_decode.py --skin 5 --column-solve --regularisation 1e-3 1e-5
     python scripts/check_tissue_decode.py --skin 5 --coupled-sweep 1 0.3 0.1
     python scripts/check_tissue_decode.py --skin 5 --quantiles 0.5 0.75 0.9 0.95 1 --refine 45
+    python scripts/check_tissue_decode.py --skin 5 --quantiles 0.95 --refine 45 --stage1-field
+    python scripts/check_tissue_decode.py --target ../shared/data/real/orange.png --quantiles 0.95 1 --refine 45
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 import scipy.linalg
@@ -79,14 +85,15 @@ from scipy.ndimage import convolve1d
 
 from octcl import _reference as ref
 from octcl.config import DEFAULT_CONFIG
-from octcl.host.stage1.start import linear_start
+from octcl.host.stage1.start import least_norm_twin, linear_start
 from octcl.host.stage2 import tissue
 from octcl.host.stage1.backend import make_backend
 from octcl.host.stage1.ceiling import aimed_levels
-from octcl.host.stage1.operator import FieldOperator, lateral_taps
-from octcl.host.stage1.solve import FieldSolve
+from octcl.host.stage1.operator import lateral_taps
 from octcl.host.stage2.exact import decoded_weights, phantom_of_rows, rendered_cells
 from octcl.host.pipeline.invert import TISSUE_SCHEDULE
+from octcl.host.pipeline.target import read_target
+from octcl.host.stage1.levels import target_levels
 from octcl.host.stage3.loss import ExactScore
 from octcl.host.stage3.refine import refine
 from octcl.phantom import Phantom
@@ -139,11 +146,15 @@ def lateral_solver(regularisation: float):
     return solve
 
 
+def line_energies(field: np.ndarray) -> np.ndarray:
+    """Σ|F|² of each A-scan line."""
+    return (np.abs(field) ** 2).sum(axis=0)
+
+
 def least_norm_field(field: np.ndarray, levels: np.ndarray) -> np.ndarray:
-    """The field's least-norm twin, fitted back onto the target's levels (module docstring, item 3)."""
-    operator = FieldOperator(DEFAULT_CONFIG)
-    solve = FieldSolve(levels, aimed_levels(levels), make_backend("opencl", DEFAULT_CONFIG))
-    return solve.fit_levels(operator.pseudo_inverse(operator.apply(field), 1e-3), levels, 200).field
+    """The field's least-norm twin on the target's levels, as the tissue regime decodes it
+    (:func:`~octcl.host.stage1.start.least_norm_twin`)."""
+    return least_norm_twin(field, aimed_levels(levels), make_backend("opencl", DEFAULT_CONFIG)).field
 
 
 def column_solve(field: np.ndarray, lights: np.ndarray, regularisation: float, iterations: int = 10) -> list[float]:
@@ -215,18 +226,20 @@ def coupled_sweep(field: np.ndarray, truth_figures: dict, levels: np.ndarray, sc
               f"{light[0].max():.3g}), {figures_line(phantom, truth_figures, levels)}", flush=True)
 
 
-def figures_line(phantom: Phantom, its: dict, levels: np.ndarray) -> str:
+def figures_line(phantom: Phantom, its: dict | None, levels: np.ndarray) -> str:
     """Shadow, bands over the truth's, median E and the share of pixels at their level, as one line; ``its`` the
-    truth's :func:`~octcl.tissue.tissue_figures`."""
+    truth's :func:`~octcl.tissue.tissue_figures` (None for a target without one: no bands)."""
     mine = tissue_figures(phantom, levels)
+    exact = f"pixels at their level {np.mean(render(phantom).levels == levels):.3f}"
+    if its is None:
+        return f"shadow {mine['shadow_db']:.1f} dB, median E {mine['energy_pct']['p50']:.3g} %, {exact}"
     bands = [round(ours / theirs, 2) for theirs, ours, signal in zip(
         its["band_densities_pct"], mine["band_densities_pct"], its["bands_with_signal"]) if signal]
     return (f"shadow {mine['shadow_db']:.1f} dB (truth {its['shadow_db']:.1f}), bands / truth's {bands}, median E "
-            f"{mine['energy_pct']['p50']:.3g} % (truth {its['energy_pct']['p50']:.3g}), pixels at their level "
-            f"{np.mean(render(phantom).levels == levels):.3f}")
+            f"{mine['energy_pct']['p50']:.3g} % (truth {its['energy_pct']['p50']:.3g}), {exact}")
 
 
-def quantile_choice(field: np.ndarray, truth_figures: dict, levels: np.ndarray, quantiles: list[float],
+def quantile_choice(field: np.ndarray, truth_figures: dict | None, levels: np.ndarray, quantiles: list[float],
                     refine_s: float | None) -> None:
     """Item 5 of the module docstring."""
     for quantile in quantiles:
@@ -243,6 +256,8 @@ def quantile_choice(field: np.ndarray, truth_figures: dict, levels: np.ndarray, 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--skin", type=int, default=5, help="skin phantom seed (default 5)")
+    parser.add_argument("--target", type=Path, help="with --quantiles: a real(-like) target instead of a skin "
+                                                    "phantom (figures without a truth)")
     parser.add_argument("--rows", nargs="+", type=int, default=[50, 80, 110, 150, 200])
     parser.add_argument("--scales", nargs="+", type=float, default=[0.0001, 0.1, 0.3, 1.0])
     parser.add_argument("--column-solve", action="store_true", help="item 3 of the description, instead of 1–2")
@@ -252,22 +267,32 @@ def main(argv=None) -> None:
                              "lines' own c² (default 1)")
     parser.add_argument("--quantiles", nargs="+", type=float, help="item 5 of the description, instead of 1–2")
     parser.add_argument("--refine", type=float, metavar="SECONDS", help="with --quantiles: stage 3 from each decode")
+    parser.add_argument("--stage1-field", action="store_true",
+                        help="items 1, 2 and 5 decode stage 1's own field, not its least-norm twin (the tissue "
+                             "regime's)")
     args = parser.parse_args(argv)
-    levels = render(Phantom.skin(args.skin)).levels
+    if args.target and not args.quantiles:
+        parser.error("--target goes with --quantiles (items 1–4 are the skin phantoms')")
+    truth = None if args.target else Phantom.skin(args.skin)
+    levels = target_levels(read_target(args.target), DEFAULT_CONFIG) if args.target else render(truth).levels
+    name = args.target.name if args.target else f"skin {args.skin}"
     exact = ExactScore(levels)
-    field = linear_start(levels, lambda image: exact(image)["mean"]).field
+    field = linear_start(levels, lambda image: exact(image)["mean"], aim=aimed_levels(levels)).field
+    twin = least_norm_field(field, levels)
+    decoded_field = field if args.stage1_field else twin
+    spread = np.quantile(line_energies(decoded_field) / np.median(line_energies(decoded_field)), [0.05, 0.95])
+    print(f"{name}: decoding {'stage 1' if args.stage1_field else 'the least-norm twin of stage 1'}'s "
+          f"field, its lines' Σ|F|² {spread[0]:.2f}–{spread[1]:.2f} times the median line's (5–95 %)", flush=True)
     if args.quantiles:
-        quantile_choice(field, tissue_figures(Phantom.skin(args.skin), levels), levels, args.quantiles, args.refine)
+        quantile_choice(decoded_field, None if truth is None else tissue_figures(truth, levels), levels, args.quantiles, args.refine)
         return
     if args.coupled_sweep is not None:
-        twin = least_norm_field(field, levels)
-        truth = tissue_figures(Phantom.skin(args.skin), levels)
+        truth_figures = tissue_figures(truth, levels)
         for factor in args.coupled_sweep or [1.0]:
             print(f"c² × {factor:g}")
-            coupled_sweep(twin, truth, levels, factor)
+            coupled_sweep(twin, truth_figures, levels, factor)
         return
     if args.column_solve:
-        twin = least_norm_field(field, levels)
         lines = np.arange(DEFAULT_CONFIG.a_scans)
         noise = np.random.default_rng(0).standard_normal(lines.size)
         for name, profile in (("one value", np.full(lines.size, 0.5)), ("smooth", 0.5 + 0.3 * np.sin(lines / 40)),
@@ -277,12 +302,12 @@ def main(argv=None) -> None:
                 print(f"lights {name}, λ {regularisation:g}: residual per iteration "
                       + " ".join(f"{value:.1e}" for value in residuals))
         return
-    decoded = tissue.decode_tissue(field, DEFAULT_CONFIG)
+    decoded = tissue.decode_tissue(decoded_field, DEFAULT_CONFIG)
     print(f"skin {args.skin}: decode c² {decoded.scale**2:.4g}, lines short of light {decoded.short_lines}, pixels at "
           f"their level {np.mean(render(decoded.phantom).levels == levels):.3f}")
     light_mismatch_db(decoded, args.rows)
-    weights = decoded_weights(field, DEFAULT_CONFIG, offsets=tissue.TISSUE_OFFSETS,
-                                     shadow=tissue.local_mean_energy(field))
+    weights = decoded_weights(decoded_field, DEFAULT_CONFIG, offsets=tissue.TISSUE_OFFSETS,
+                              shadow=tissue.local_mean_energy(decoded_field))
     for factor in args.scales:
         phantom = phantom_of_rows(top_down_rows(weights, factor * decoded.scale**2), DEFAULT_CONFIG,
                                   tissue.TISSUE_OFFSETS)

@@ -521,7 +521,7 @@ def test_invert_budget_starts_with_the_process():
 
 @pytest.mark.parametrize("options, message", [(["--field-schedule", "display:20,projekt:5"], "unknown stage-1 step"),
                                               (["--field-schedule", "display:20", "--regime", "physical"],
-                                               "linear regime's")])
+                                               "linear and tissue regimes'")])
 def test_invert_refuses_a_bad_field_schedule_before_any_work(tmp_path, capsys, official_data, options, message):
     output = tmp_path / "out.txt"
     status, _, err = run(capsys, "invert", official_data / "Scan_Exp2_Layers_A.png", "-o", output, *options)

@@ -22,8 +22,9 @@ Stages 1–2 come in three regimes (:data:`REGIMES`):
   :func:`octcl.host.stage2.capped.decode_field` (amplitude-capped children at
   random elevations, shadowing ≤ 1e−4 per A-scan); slower and lower
   scoring, kept to reproduce the published method.
-- ``tissue``: the linear regime's stage 1, then
-  :func:`octcl.host.stage2.tissue.decode_tissue` (the rows at tissue scale,
+- ``tissue``: the linear regime's stage 1, the field of least norm that
+  renders as its field does (:func:`octcl.host.stage1.start.least_norm_twin`),
+  then :func:`octcl.host.stage2.tissue.decode_tissue` of it (the rows at tissue scale,
   each divided by the light the rows above leave it, the scale from the
   light left below the data) and stage 3 with shadowing on
   (:data:`TISSUE_SCHEDULE`: the pixel term alone, then the full loss). The
@@ -276,7 +277,8 @@ class InvertProgress:
     Attributes
     ----------
     stage : str
-        ``field`` (stage 1), ``decode`` (stage 2), ``setup`` (kernels and
+        ``field`` (stage 1), ``twin`` (the tissue regime's least-norm field,
+        :func:`~octcl.host.stage1.start.least_norm_twin`), ``decode`` (stage 2), ``setup`` (kernels and
         scorer), ``refine`` or ``restart N`` (stage 3), ``done``.
     iteration, iterations : int
         Steps taken and planned in the stage (stage 3: Adam steps, restarts
@@ -543,7 +545,7 @@ class _Start:
     clock_steps: int             # of them, steps whose course the clock set
     threads: int | None          # FFT threads of stage 1
     field_loss: float | None     # stage 1's last loss (physical regime)
-    seconds: dict                # {"field": s, "decode": s}
+    seconds: dict                # {"field": s, "decode": s}, and "twin": s in the tissue regime
     candidates: list | None = None  # the linear regime's stage-1 candidates (LinearStart.candidates)
     aim: np.ndarray | None = None   # the levels stage 1 aimed at (linear regime), for stage 3's stop
     decode: dict | None = None      # what the tissue decode chose (TissueDecode.summary)
@@ -588,22 +590,31 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
     found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, schedules=schedules,
                          time_budget_s=budget_s, threads=threads,
                          progress=lambda taken, planned: step(taken, planned, None), aim=aim, backend=field_backend)
-    tell("decode", 0, 1)
-    start = time.monotonic()
-    decoded = None
+    seconds = {"field": found.seconds}
+    field, decode = found.field, None
     if tissue:
+        from ..stage1.start import least_norm_twin
         from ..stage2.tissue import decode_tissue
 
-        decoded = decode_tissue(found.field, config)
-        phantom = decoded.phantom
+        tell("twin", 0, 1)
+        twin = least_norm_twin(found.field, found.aim, field_backend,
+                               time_budget_s=None if budget_s is None else max(budget_s - found.seconds,
+                                                                               MIN_FIELD_BUDGET_S))
+        field, seconds["twin"] = twin.field, twin.seconds
+        decode = {"twin_iterations": twin.iterations, "twin_identical": twin.identical}
+    tell("decode", 0, 1)
+    start = time.monotonic()
+    if tissue:
+        decoded = decode_tissue(field, config)
+        phantom, decode = decoded.phantom, dict(decoded.summary(), **decode)
     else:
         phantom = decode_exact(found.field, config)
         schedule = dataclasses.replace(schedule,
                                        min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
     # field_iterations: the first candidate's display steps, from which the others follow (the reproduce options).
+    seconds["decode"] = time.monotonic() - start
     return _Start(phantom, schedule, iterations if field_schedule is None else field_schedule.display_iterations,
-                  found.clock_steps, found.threads, None, {"field": found.seconds, "decode": time.monotonic() - start},
-                  found.candidates, found.aim, None if decoded is None else decoded.summary())
+                  found.clock_steps, found.threads, None, seconds, found.candidates, found.aim, decode)
 
 
 _STARTS = {"linear": _linear_start, "physical": _physical_start,

@@ -8,6 +8,15 @@ its aimed level, the others are left out. The aimed levels are the
 target's own where the scanner can write them, one level up or down where
 it cannot: by error diffusion (:mod:`octcl.host.stage1.ceiling`), then moved
 where the exact score gains (:mod:`octcl.host.stage1.aim`).
+
+:func:`least_norm_twin` gives, for the tissue regime's decode, the field of
+least norm among those that render what a field renders. The field the
+steps find is one of many with its rendering: the operator A (the beam's
+lateral weights and the depth kernel) passes little of the finest lateral
+detail, and the display fit puts energy there that the rendering does not
+show. The tissue decode reads each A-scan line's energy as the light its
+tissue takes (:mod:`octcl.host.stage2.tissue`), so that unseen energy is
+shadow the target does not ask for.
 """
 
 from __future__ import annotations
@@ -21,7 +30,9 @@ import numpy as np
 from ...config import DEFAULT_CONFIG, ScannerConfig
 from ...render import Rendering
 from .backend import Backend, NumpyBackend
+from .hinge import fit_levels
 from .levels import target_levels
+from .projections import LinearFit
 from .solve import FieldSchedule, FieldSolve, default_schedules
 
 #: Display-fit steps of the first candidate by default, ``octcl invert``'s in the linear regime; the
@@ -32,6 +43,11 @@ from .solve import FieldSchedule, FieldSolve, default_schedules
 #: time against 150's 6.1 s, scored 9.5e−7 less on orange and took 1–2 s more on the two plain skins
 #: (docs/benchmarks.md, 0.6.0).
 DISPLAY_ITERATIONS = 150
+#: Hinge iterations of :func:`least_norm_twin` at most (it stops once every pixel is at its level). On skin 5,
+#: 20, 50 and 200 left 63 %, 70 % and 99.1 % of pixels at their level (0.2, 0.55 and 1.9 s on two cores); its
+#: per-line energy spread 0.63–1.52 times the median line's (5–95 %) after 200, where the field it came from
+#: spread 0.57–1.98 (``scripts/check_tissue_decode.py``, docs/benchmarks.md, "The decode's field").
+TWIN_ITERATIONS = 200
 @dataclass
 class LinearStart:
     """Result of :func:`linear_start`.
@@ -165,3 +181,18 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedule
                        candidates=candidates, seconds=elapsed(), clock_steps=clock_steps,
                        threads=backend.threads or 1)
 
+
+def least_norm_twin(field: np.ndarray, aim: np.ndarray, backend: Backend, iterations: int = TWIN_ITERATIONS,
+                    time_budget_s: float | None = None) -> LinearFit:
+    """The field of least norm that renders as ``field`` does, fitted back onto ``aim`` (module docstring).
+
+    F' = A⁺(A(F)), A⁺ the Tikhonov-regularised pseudo-inverse
+    (:meth:`~octcl.host.stage1.operator.FieldOperator.pseudo_inverse`), the
+    F' minimising ‖A(F') − A(F)‖² + λ·‖F'‖²: F without what A does not pass,
+    and with a little of what it passes weakly, so that its rendering moves
+    off some levels; the hinge fit (:func:`~octcl.host.stage1.hinge.fit_levels`,
+    at most ``iterations``, within ``time_budget_s``) takes it back onto ``aim``.
+    """
+    operator = backend.operator
+    return fit_levels(operator.pseudo_inverse(operator.apply(field)), aim, backend.config, iterations=iterations,
+                      time_budget_s=time_budget_s, backend=backend)

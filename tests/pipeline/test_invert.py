@@ -14,6 +14,7 @@ import pytest
 from octcl._io import ImageFormatError, write_grey_png
 from octcl.host.pipeline.invert import invert
 from octcl.host.stage3.refine import Phase, RefineSchedule
+from octcl.host.stage1.start import TWIN_ITERATIONS
 from octcl.config import DEFAULT_CONFIG
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.scorer import COMPONENTS
@@ -241,7 +242,11 @@ def test_the_tissue_regime_writes_a_phantom_at_tissue_scale_and_says_what_it_is(
     assert result.tissue["energy_pct"]["p95"] > 1e-3
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["tissue"] == json.loads(json.dumps(result.tissue))
-    assert {"scale", "short_lines", "capped_rows", "bottom_light_db"} <= set(report["settings"]["tissue_decode"])
+    decode = report["settings"]["tissue_decode"]
+    assert {"scale", "short_lines", "capped_rows", "bottom_light_db"} <= set(decode)
+    # The decode's field is stage 1's least-norm twin, back on the aimed levels within its iterations.
+    assert decode["twin_iterations"] <= TWIN_ITERATIONS and decode["twin_identical"] > 0.9
+    assert report["seconds"]["twin"] > 0
     assert result.reproduce.startswith("--regime tissue")
 
 

@@ -50,3 +50,38 @@ def test_linear_start_leaves_out_candidates_the_budget_cannot_hold():
     assert len(found.candidates) == 1 and found.clock_steps >= 1
     display_record = found.candidates[0]["steps"][0]
     assert display_record["name"] == "display" and display_record["iterations"] < 400  # cut by its share
+
+
+def test_least_norm_twin_drops_what_the_rendering_does_not_show():
+    """A field with a component twice its own norm that the operator does not pass (X − A⁺A·X, X random)
+    renders the same levels after :func:`least_norm_twin` at about half its norm relative to its rendering,
+    near the field without that component; that one, already of least norm, keeps its norm."""
+    from octcl.config import ScannerConfig
+    from octcl.host.stage1.backend import NumpyBackend
+    from octcl.host.stage1.start import least_norm_twin
+    from octcl.render import Rendering
+
+    config = ScannerConfig(depth_pixels=64, a_scans=64, xmax_um=384.0)
+    backend = NumpyBackend(config, threads=1)
+    operator = backend.operator
+    rng = np.random.default_rng(3)
+
+    def random_field():
+        return rng.standard_normal(config.shape) + 1j * rng.standard_normal(config.shape)
+
+    def relative_norm(field):
+        return np.linalg.norm(field) / np.abs(operator.apply(field)).max()
+
+    seen = operator.pseudo_inverse(operator.apply(random_field() * np.exp(-np.arange(64) / 20)[:, None]))
+    unseen = random_field()
+    unseen -= operator.pseudo_inverse(operator.apply(unseen))
+    field = seen + 2 * unseen * np.linalg.norm(seen) / np.linalg.norm(unseen)
+    twins = {}
+    for name, start in (("field", field), ("seen", seen)):
+        aim = Rendering.from_a_scans(operator.apply(start)).levels
+        twin = twins[name] = least_norm_twin(start, aim, backend, iterations=1000)
+        assert twin.identical == 1.0
+        assert np.array_equal(Rendering.from_a_scans(operator.apply(twin.field)).levels, aim)
+    assert relative_norm(twins["field"].field) < 0.6 * relative_norm(field)
+    assert relative_norm(twins["field"].field) < 1.2 * relative_norm(seen)
+    assert 0.9 < relative_norm(twins["seen"].field) / relative_norm(seen) < 1.05
