@@ -1,7 +1,7 @@
 """Stage 3 in the tissue regime: schedules compared from the same tissue-scale start, under the same clock.
 
-For each skin seed: the scanner's rendering of ``octcl phantom skin --seed N``
-is the target; ``octcl invert --regime tissue --iterations 0`` (stages 1–2
+For each skin seed the scanner's rendering of ``octcl phantom skin --seed N``
+is the target, and so is each ``--real`` file; ``octcl invert --regime tissue --iterations 0`` (stages 1–2
 only) gives the start once; then each schedule (:data:`SCHEDULES`) runs
 stage 3 from that start for ``--seconds``, one after the other in one
 process with the same threads, and the result's exact score and share of
@@ -13,12 +13,14 @@ pixels at the target's level are printed, one JSON row per run:
   (lr_z_um, lr_u), as long as the clock lets it;
 - ``tissue``: :data:`octcl.host.pipeline.invert.TISSUE_SCHEDULE`, the
   tissue regime's default, its pixel phase ``--pixel-steps`` long when
-  given.
+  given (one run for each length).
 
 Example::
 
     python scripts/bench_tissue_refine.py --skin 5 --seconds 40 --out OUT
     python scripts/bench_tissue_refine.py --skin 5 --schedules tissue --pixel-steps 500 --seconds 120 --out OUT
+    python scripts/bench_tissue_refine.py --skin 6 --real ../shared/data/real/orange.png --schedules tissue \
+        --pixel-steps 250 120 60 --seconds 20 --out OUT
 """
 
 from __future__ import annotations
@@ -32,7 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from octcl._io import write_grey_png
+from octcl.config import DEFAULT_CONFIG
 from octcl.host.pipeline.invert import TISSUE_SCHEDULE, invert
+from octcl.host.pipeline.target import read_target, target_scan
+from octcl.host.stage1.levels import target_levels
 from octcl.host.stage3.refine import Phase, RefineSchedule, refine
 from octcl.phantom import Phantom
 from octcl.render import render
@@ -52,38 +57,44 @@ def schedule_named(name: str, pixel_rates: tuple[float, float], pixel_steps: int
     return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, iterations=pixel_steps), *rest))
 
 
-def bench(seed: int, names: list[str], seconds: float, pixel_rates, pixel_steps, out: Path) -> None:
-    levels = render(Phantom.skin(seed)).levels
-    target = out / f"skin_{seed}.png"
-    write_grey_png(target, levels)
-    start_path = out / f"skin_{seed}_start.txt"
-    if not start_path.exists():  # stages 1–2 once per seed and folder
+def bench(name: str, target: Path, names: list[str], seconds: float, pixel_rates, pixel_steps: list, out: Path) -> None:
+    levels = target_levels(target_scan(read_target(target)), DEFAULT_CONFIG)
+    start_path = out / f"{name}_start.txt"
+    if not start_path.exists():  # stages 1–2 once per target and folder
         invert(target, start_path, regime="tissue", iterations=0, threads=2)
     start = Phantom.load(start_path)
-    for name in names:
-        began = time.perf_counter()
-        result = refine(start, levels, schedule_named(name, pixel_rates, pixel_steps),
-                        deadline=time.monotonic() + seconds, threads=2)
-        exact_share = float(np.mean(render(result.phantom).levels == levels))
-        print(json.dumps({"skin": seed, "schedule": name, "pixel_rates": pixel_rates, "pixel_steps": pixel_steps,
-                          "seconds": round(time.perf_counter() - began, 1),
-                          "steps": result.iterations, "start_score": result.initial_components["mean"],
-                          "score": result.components["mean"], "exact_share": exact_share}), flush=True)
+    for schedule in names:
+        for steps in (pixel_steps if schedule == "tissue" else [None]):
+            began = time.perf_counter()
+            result = refine(start, levels, schedule_named(schedule, pixel_rates, steps),
+                            deadline=time.monotonic() + seconds, threads=2)
+            exact_share = float(np.mean(render(result.phantom).levels == levels))
+            print(json.dumps({"target": name, "schedule": schedule, "pixel_rates": pixel_rates,
+                              "pixel_steps": steps, "seconds": round(time.perf_counter() - began, 1),
+                              "steps": result.iterations, "start_score": result.initial_components["mean"],
+                              "score": result.components["mean"], "exact_share": exact_share}), flush=True)
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--skin", nargs="+", type=int, default=[5], help="skin phantom seeds (default 5)")
+    parser.add_argument("--skin", nargs="*", type=int, default=[5], help="skin phantom seeds (default 5)")
+    parser.add_argument("--real", nargs="*", type=Path, default=[], help="real(-like) targets")
     parser.add_argument("--schedules", nargs="+", choices=SCHEDULES, default=list(SCHEDULES))
     parser.add_argument("--seconds", type=float, default=40.0, help="stage 3's clock per schedule (default 40)")
     parser.add_argument("--pixel-rates", nargs=2, type=float, default=(0.001, 0.02), metavar=("LR_Z_UM", "LR_U"),
                         help="the pixel schedule's learning rates (default 0.001 0.02)")
-    parser.add_argument("--pixel-steps", type=int, help="the tissue schedule's pixel steps (default its own, 250)")
+    parser.add_argument("--pixel-steps", nargs="+", type=int, default=[None],
+                        help="the tissue schedule's pixel steps, one run each (default its own)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    targets = []
     for seed in args.skin:
-        bench(seed, args.schedules, args.seconds, tuple(args.pixel_rates), args.pixel_steps, args.out)
+        targets.append((f"skin_{seed}", args.out / f"skin_{seed}.png"))
+        write_grey_png(targets[-1][1], render(Phantom.skin(seed)).levels)
+    targets += [(path.stem, path) for path in args.real]
+    for name, target in targets:
+        bench(name, target, args.schedules, args.seconds, tuple(args.pixel_rates), args.pixel_steps, args.out)
 
 
 if __name__ == "__main__":

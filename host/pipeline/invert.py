@@ -129,7 +129,12 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
 #: From the decode at its 0.95-quantile scale (skin 5, start 0.866) the choice still holds within the noise: 250,
 #: 100 and 50 pixel steps scored 0.99897, 0.99908 and 0.99909 in 20 s, 250 and 100 scored 0.99943 and 0.99953 in
 #: 45 s; the pixel term alone at five rate pairs 0.99806–0.99878 in 20 s, (0.001, 0.02) 0.99870.
-TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(250, 0.001, 0.02, terms="pixel"), Phase(250, 0.0005, 0.005)),
+#: From the decode of the least-norm twin, 120 pixel steps: 250, 120 and 60 scored 0.99924, 0.99945, 0.99938
+#: (skin 6), 0.99922, 0.99936, 0.99943 (orange.png), 0.99909, 0.99934, 0.99930 (plain_skin_0) and 0.99892,
+#: 0.99940, 0.99932 (plain_skin_1) in 20 s; 250 and 120 within 4e−5 of each other in 45 s (on orange the pixel
+#: term alone peaks after 60–80 steps and then falls: it pulls unwritable levels towards the target's own)
+#: (``scripts/bench_tissue_refine.py --skin 6 --real ... --schedules tissue --pixel-steps 250 120 60``).
+TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(120, 0.001, 0.02, terms="pixel"), Phase(250, 0.0005, 0.005)),
                                  restarts=(Phase(60, 0.0005, 0.005), Phase(60, 0.00025, 0.0025)))
 #: torch's thread count in a fixed-schedule run unless given. The thread
 #: count changes no bit of the result (docs/reproducibility.md), only the
