@@ -284,7 +284,8 @@ def main(argv=None) -> None:
     print(f"{name}: decoding {'stage 1' if args.stage1_field else 'the least-norm twin of stage 1'}'s "
           f"field, its lines' Σ|F|² {spread[0]:.2f}–{spread[1]:.2f} times the median line's (5–95 %)", flush=True)
     if args.quantiles:
-        quantile_choice(decoded_field, None if truth is None else tissue_figures(truth, levels), levels, args.quantiles, args.refine)
+        truth_figures = None if truth is None else tissue_figures(truth, levels)
+        quantile_choice(decoded_field, truth_figures, levels, args.quantiles, args.refine)
         return
     if args.coupled_sweep is not None:
         truth_figures = tissue_figures(truth, levels)

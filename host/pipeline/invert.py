@@ -583,7 +583,8 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
     ``iterations`` display steps (a display fit, projections and the hinge
     fit towards the aimed levels; a half-length candidate only where that
     one falls short); stage 2 :func:`~octcl.host.stage2.exact.decode_exact` or, with
-    ``tissue`` (the tissue regime), :func:`~octcl.host.stage2.tissue.decode_tissue`. The
+    ``tissue`` (the tissue regime), :func:`~octcl.host.stage2.tissue.decode_tissue` of the field's
+    least-norm twin (:func:`_tissue_decode`). The
     aim goes on to stage 3, which does nothing where the start renders it.
     """
     from ..stage1.solve import default_schedules
@@ -596,30 +597,38 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
                          time_budget_s=budget_s, threads=threads,
                          progress=lambda taken, planned: step(taken, planned, None), aim=aim, backend=field_backend)
     seconds = {"field": found.seconds}
-    field, decode = found.field, None
     if tissue:
-        from ..stage1.start import least_norm_twin
-        from ..stage2.tissue import decode_tissue
-
-        tell("twin", 0, 1)
-        twin = least_norm_twin(found.field, found.aim, field_backend,
-                               time_budget_s=None if budget_s is None else max(budget_s - found.seconds,
-                                                                               MIN_FIELD_BUDGET_S))
-        field, seconds["twin"] = twin.field, twin.seconds
-        decode = {"twin_iterations": twin.iterations, "twin_identical": twin.identical}
-    tell("decode", 0, 1)
-    start = time.monotonic()
-    if tissue:
-        decoded = decode_tissue(field, config)
-        phantom, decode = decoded.phantom, dict(decoded.summary(), **decode)
+        phantom, decode = _tissue_decode(found, config, field_backend, budget_s, tell, seconds)
     else:
-        phantom = decode_exact(found.field, config)
+        tell("decode", 0, 1)
+        start = time.monotonic()
+        phantom, decode = decode_exact(found.field, config), None
+        seconds["decode"] = time.monotonic() - start
         schedule = dataclasses.replace(schedule,
                                        min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
     # field_iterations: the first candidate's display steps, from which the others follow (the reproduce options).
-    seconds["decode"] = time.monotonic() - start
     return _Start(phantom, schedule, iterations if field_schedule is None else field_schedule.display_iterations,
                   found.clock_steps, found.threads, None, seconds, found.candidates, found.aim, decode)
+
+
+def _tissue_decode(found, config, backend, budget_s, tell, seconds: dict) -> tuple[Phantom, dict]:
+    """Stage 2 of the tissue regime: stage 1's field taken to its least-norm twin
+    (:func:`~octcl.host.stage1.start.least_norm_twin`, within what stage 1 left of ``budget_s``), then
+    :func:`~octcl.host.stage2.tissue.decode_tissue` of it. Returns the phantom and the decode's choices with the
+    twin's iterations and share at the aim; ``seconds`` gets ``twin`` and ``decode``."""
+    from ..stage1.start import least_norm_twin
+    from ..stage2.tissue import decode_tissue
+
+    tell("twin", 0, 1)
+    twin = least_norm_twin(found.field, found.aim, backend,
+                           time_budget_s=None if budget_s is None else max(budget_s - found.seconds,
+                                                                           MIN_FIELD_BUDGET_S))
+    seconds["twin"] = twin.seconds
+    tell("decode", 0, 1)
+    start = time.monotonic()
+    decoded = decode_tissue(twin.field, config)
+    seconds["decode"] = time.monotonic() - start
+    return decoded.phantom, dict(decoded.summary(), twin_iterations=twin.iterations, twin_identical=twin.identical)
 
 
 _STARTS = {"linear": _linear_start, "physical": _physical_start,
