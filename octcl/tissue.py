@@ -18,7 +18,10 @@ the two apart and compare a phantom with another (its truth):
   sees of them: n·E, which the scan can tell, not E alone);
 - :func:`attenuation_map`: µ = −d ln T/dz in mm⁻¹ per pixel, the phantom's
   own attenuation coefficient (OCT intensity decays as e^{−2µz});
-- :func:`tissue_figures`: all of them, and the energies' percentiles.
+- :func:`tissue_figures`: all of them, and the energies' percentiles;
+- :func:`scan_attenuation`: µ of a scan itself, the depth-resolved estimate
+  from its intensities (what the OAC map is built on), in the same unit, so
+  that a phantom's own attenuation can be set beside its target's.
 """
 
 from __future__ import annotations
@@ -97,6 +100,25 @@ def attenuation_map(transmission: np.ndarray, config: ScannerConfig = DEFAULT_CO
     return -step / config.pixel_size_um * 1000.0
 
 
+def scan_attenuation(magnitude: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:
+    """µ (mm⁻¹) of each pixel of a scan, by the depth-resolved estimator on its intensities I = |A|², (Nz, Nx).
+
+    µ[z] = I[z] / (2Δ·(Σ_{z' > z} I[z'] + I[z]/2)), Δ the pixel size in mm: the estimator of Vermeer et al.,
+    "Depth-resolved model-based reconstruction of attenuation coefficients in optical coherence tomography",
+    Biomed. Opt. Express 5(1), 322–337, 2014, in the half-pixel form of the SynthOCT processor's OAC map
+    (:mod:`octcl.maps`). It assumes all the light is gone below the scan: where a line's intensity decays as
+    e^{−2µz} without end it gives tanh(µΔ)/Δ ≈ µ, and it overestimates at the bottom of the data. The OAC map
+    reads the grey levels as 40 dB; ``magnitude`` here is |A|/max|A| as the scanner displays it over its own
+    51 dB (:func:`octcl.host.stage1.levels.target_magnitude` of a target's levels), so that µ is in the unit of
+    :func:`attenuation_map`, the phantom's own.
+    """
+    intensity = np.asarray(magnitude, dtype=np.float64) ** 2
+    below = np.cumsum(intensity[::-1], axis=0)[::-1] - intensity / 2  # Σ_{z' > z} I + I/2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        attenuation = np.where(below > 0, intensity / (2 * below), 0.0)
+    return attenuation / config.pixel_size_um * 1000.0
+
+
 def tissue_figures(phantom: Phantom, levels: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
                    transmission: np.ndarray | None = None) -> dict:
     """The figures of the module docstring for ``phantom`` against the target ``levels`` (its visible tissue);
@@ -114,4 +136,4 @@ def tissue_figures(phantom: Phantom, levels: np.ndarray, config: ScannerConfig =
 
 
 __all__ = ["BAND_SIGNAL_SHARE", "BAND_UM", "VISIBLE_LEVEL", "attenuation_map", "band_densities", "bands_with_signal",
-           "shadow_db", "tissue_figures", "transmission_map"]
+           "scan_attenuation", "shadow_db", "tissue_figures", "transmission_map"]

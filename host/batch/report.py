@@ -8,7 +8,9 @@
 - ``report.html``: one file with everything inline (images as base64 PNG,
   a few lines of script to sort the table by any column): the global score,
   the table, and per scan its comparison panel (target and rendering of the
-  phantom, each as scan, OAC, SC and RSC) with its best score against time.
+  phantom, each as scan, OAC, SC and RSC) with its best score against time
+  and, in the tissue regime, the phantom's attenuation beside its target's
+  (:func:`tissue_panel`).
   Panels are embedded for the :data:`REPORT_PANELS` lowest-scoring scans
   (about 0.3 MB each), the ones worth a look; every scan keeps its own
   ``NAME.panel.png`` and ``NAME.score.png`` beside its phantom.
@@ -43,6 +45,10 @@ DONE = ("inverted", "resumed")
 REPORT_PANELS = 100
 #: The four maps of a panel row, as labelled.
 PANEL_MAPS = ("scan", "OAC", "SC", "RSC")
+#: The pictures of a scan's section, in order, with what each shows: the comparison panel and the score plot of
+#: every scan, the attenuation panel (:func:`tissue_panel`) of a scan inverted in the tissue regime.
+PICTURES = {"panel": "target and rendering, scan, OAC, SC and RSC", "plot": "best exact score against time",
+            "tissue": "the target's OAC map and attenuation beside the phantom's own"}
 
 
 def _png(image) -> bytes:
@@ -82,6 +88,54 @@ def comparison_panel(target: np.ndarray, render_levels: np.ndarray, title: str) 
             draw.text((c * width + 4, top + 2), f"{row_name} {map_name}", fill=0)
             image.paste(Image.fromarray(levels), (c * width, top + label))
     return _png(image)
+
+
+def tissue_panel(target: np.ndarray, attenuation_per_mm: np.ndarray, title: str) -> bytes:
+    """PNG (matplotlib) of the target's OAC map beside its µ and the phantom's µ, on one colour scale.
+
+    Left, the target's OAC map as the scorer compares it (:func:`octcl.maps.map_levels`: the depth-resolved
+    estimate on the grey levels read as 40 dB, shown from its minimum to its 99th percentile, so without a
+    unit). Middle, µ (mm⁻¹) of the target by the same estimator on the magnitudes the scanner's own 51 dB
+    display stands for (:func:`octcl.tissue.scan_attenuation`; it overestimates towards the bottom of the data,
+    where it takes all the light to be gone). Right, ``attenuation_per_mm`` (Nz, Nx), the
+    phantom's µ from its own transmission (:func:`octcl.tissue.attenuation_map`): a phantom that makes the
+    scan's dimming by shadowing shows the middle panel's µ, one that paints it into its energies shows about
+    0. The two µ panels share a colour scale up to the 99th percentile of both over the target's visible
+    tissue (:data:`octcl.tissue.VISIBLE_LEVEL`).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from octcl.maps import map_levels
+    from octcl.tissue import VISIBLE_LEVEL, scan_attenuation
+
+    from ..pipeline.target import target_scan
+    from ..stage1.levels import target_levels, target_magnitude
+
+    levels = target_levels(target_scan(target))
+    target_attenuation = scan_attenuation(target_magnitude(levels))
+    visible = levels >= VISIBLE_LEVEL
+    if not visible.any():
+        visible = np.ones_like(visible)
+    top = max(float(np.percentile(np.concatenate([target_attenuation[visible], attenuation_per_mm[visible]]), 99)),
+              1e-3)
+    figure = Figure(figsize=(15, 3.4), dpi=100, layout="constrained")
+    axes = figure.subplots(1, 3)
+    axes[0].imshow(map_levels(target_scan(target))["OAC"], cmap="gray", vmin=0, vmax=255, aspect="auto")
+    axes[0].set_title("target: OAC map (the scorer's)")
+    for ax, data, name in ((axes[1], target_attenuation, "target: µ, depth-resolved estimate (51 dB)"),
+                           (axes[2], attenuation_per_mm, "phantom: µ from its own transmission")):
+        shown = ax.imshow(data, cmap="magma", vmin=0, vmax=top, aspect="auto")
+        ax.set_title(name)
+    figure.colorbar(shown, ax=axes[1:], label="µ (mm⁻¹)")
+    for ax in axes:
+        ax.set(xlabel="A-scan", ylabel="depth pixel")
+    figure.suptitle(title)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    return buffer.getvalue()
 
 
 def best_so_far(trace: list[dict]) -> tuple[list[float], list[float]]:
@@ -208,8 +262,9 @@ def _image(data: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(data).decode()}">'
 
 
-def report_html(summary: dict, images: dict[str, tuple[bytes, bytes]]) -> str:
-    """The page: global score, medians, the sortable scans table, and ``{name: (panel, plot)}`` images."""
+def report_html(summary: dict, images: dict[str, dict[str, bytes]]) -> str:
+    """The page: global score, medians, the sortable scans table, and each scan's ``{kind: PNG}`` pictures
+    (:data:`PICTURES`' kinds, in its order)."""
     rows = summary["scans"]
     counts = ", ".join(f"{n} {status}" for status, n in summary["counts"].items() if n)
     score = f"{summary['score']:.5f}" if "score" in summary else "none (no scan inverted and scored)"
@@ -237,14 +292,14 @@ def report_html(summary: dict, images: dict[str, tuple[bytes, bytes]]) -> str:
     if len(images) < sum(row["status"] in DONE for row in rows.values()):
         parts.append(f"<p>Panels of the {len(images)} lowest-scoring scans; every scan's are in its "
                      "NAME.panel.png and NAME.score.png.</p>")
-    for name, (panel, plot) in images.items():
+    for name, pictures in images.items():
         row = rows[name]
         shown_score = "score left out" if row["mean"] is None else f"{row['mean']:.5f}"
         parts += [f'<section id="{html.escape(_anchor(name))}"><h2>{html.escape(name)}: {shown_score}</h2>',
                   f'<p class="meta">{row["status"]}, {row["seconds"]:.0f} s, peak memory '
                   f'{row["peak_memory_mib"]:.0f} MiB</p>',
-                  _image(panel, f"{name}: target and rendering, scan, OAC, SC and RSC"),
-                  _image(plot, f"{name}: best exact score against time"), "</section>"]
+                  *(_image(pictures[kind], f"{name}: {what}") for kind, what in PICTURES.items() if kind in pictures),
+                  "</section>"]
     parts += [f"<script>{_SCRIPT}</script>", "</body></html>"]
     return "\n".join(parts)
 
@@ -253,8 +308,8 @@ def write_reports(out_dir, rows: dict[str, dict], settings: dict, cluster: str |
                   images) -> dict:
     """Write summary.csv, summary.json and report.html into ``out_dir`` (each atomically); return the summary.
 
-    ``images(name)`` returns a scan's (panel PNG, plot PNG), or None if it
-    has none.
+    ``images(name)`` returns a scan's ``{kind: PNG}`` (:data:`PICTURES`' kinds; ``panel`` and ``plot`` at
+    least), or None if it has none.
     """
     from pathlib import Path
 
@@ -276,5 +331,5 @@ def write_reports(out_dir, rows: dict[str, dict], settings: dict, cluster: str |
     return summary
 
 
-__all__ = ["COLUMNS", "REPORT_PANELS", "best_so_far", "comparison_panel", "read_summary_csv", "report_html",
-           "score_plot", "summarise", "write_reports"]
+__all__ = ["COLUMNS", "PICTURES", "REPORT_PANELS", "best_so_far", "comparison_panel", "read_summary_csv", "report_html",
+           "score_plot", "summarise", "tissue_panel", "write_reports"]

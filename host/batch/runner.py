@@ -51,7 +51,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from octcl._io import ImageFormatError, atomic_write, read_image_bytes
 from octcl.scorer import COMPONENTS
 
-from .report import write_reports
+from .report import PICTURES, write_reports
 from .targets import Scan, completed_report, find_scans, settings_record, sha256
 
 #: Threads per worker of the embedded cluster (and so torch threads per scan).
@@ -232,9 +232,7 @@ def _store(scan: Scan, result: dict, target_sha256: str, settings: dict) -> dict
     """Write a worker's result for ``scan`` (each file atomically, the report last); return the report."""
     with atomic_write(scan.output("phantom")) as handle:
         handle.write(result["phantom"])
-    for kind in ("panel", "plot"):
-        with atomic_write(scan.output(kind)) as handle:
-            handle.write(result[kind])
+    scan.write_pictures({kind: result[kind] for kind in PICTURES if kind in result})
     report = {**result["report"], "output": scan.output("phantom").name,
               "batch": {**settings, "target": scan.name, "target_sha256": target_sha256,
                         "phantom_sha256": sha256(result["phantom"]), "cpu_s": result["cpu_s"],
@@ -242,16 +240,6 @@ def _store(scan: Scan, result: dict, target_sha256: str, settings: dict) -> dict
     with atomic_write(scan.output("report"), "w") as handle:
         json.dump(report, handle, indent=1, default=float)
     return report
-
-
-def _images(scans: dict[str, Scan]):
-    def images(name):
-        try:
-            return scans[name].output("panel").read_bytes(), scans[name].output("plot").read_bytes()
-        except OSError:
-            return None
-
-    return images
 
 
 def invert_batch(targets_dir, out_dir, time_budget_s: float = 600.0, seed: int = 0, *,
@@ -336,8 +324,9 @@ def invert_batch(targets_dir, out_dir, time_budget_s: float = 600.0, seed: int =
         else:
             tell()
     finally:
+        by_name = {scan.name: scan for scan in scans}
         summary = write_reports(out_dir, rows, settings, state["cluster"], time.monotonic() - started,
-                                _images({scan.name: scan for scan in scans}))
+                                lambda name: by_name[name].read_pictures())
     return summary
 
 

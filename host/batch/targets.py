@@ -26,13 +26,16 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from octcl._io import SCAN_SUFFIXES
+from octcl._io import SCAN_SUFFIXES, atomic_write
 from octcl.scorer import MAP_FILE_SUFFIXES
 
+from .report import PICTURES
+
 #: Files a batch writes for each scan, by kind: the phantom, invert's report
-#: (with the batch record), the target/rendering comparison panel and the
-#: score-against-time plot.
-OUTPUT_SUFFIXES = {"phantom": ".txt", "report": ".report.json", "panel": ".panel.png", "plot": ".score.png"}
+#: (with the batch record), the target/rendering comparison panel, the
+#: score-against-time plot and, in the tissue regime, the attenuation panel.
+OUTPUT_SUFFIXES = {"phantom": ".txt", "report": ".report.json", "panel": ".panel.png", "plot": ".score.png",
+                   "tissue": ".tissue.png"}
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,25 @@ class Scan:
     def output(self, kind: str) -> Path:
         """The output file of ``kind``, a key of :data:`OUTPUT_SUFFIXES`."""
         return self.stem.with_name(self.stem.name + OUTPUT_SUFFIXES[kind])
+
+    def write_pictures(self, pictures: dict[str, bytes]) -> None:
+        """Write each picture of ``{kind: PNG}`` (:data:`~octcl.host.batch.report.PICTURES`' kinds), each
+        atomically, and remove the file of a kind it lacks: no earlier run's picture is shown as this one's."""
+        for kind in PICTURES:
+            if kind in pictures:
+                with atomic_write(self.output(kind)) as handle:
+                    handle.write(pictures[kind])
+            else:
+                self.output(kind).unlink(missing_ok=True)
+
+    def read_pictures(self) -> dict[str, bytes] | None:
+        """``{kind: PNG}`` of the pictures on disk; None where the panel or the plot, which every scan has, is
+        missing or unreadable."""
+        try:
+            return {kind: self.output(kind).read_bytes() for kind in PICTURES
+                    if kind in ("panel", "plot") or self.output(kind).exists()}
+        except OSError:
+            return None
 
 
 def _is_target(file_name: str) -> bool:

@@ -54,7 +54,9 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
         (the file's bytes), ``report`` (invert's report, ``target`` set to
         ``name``), ``panel`` and ``plot`` (PNG bytes,
         :func:`octcl.host.batch.report.comparison_panel` and
-        :func:`~octcl.host.batch.report.score_plot`), ``cpu_s`` (this
+        :func:`~octcl.host.batch.report.score_plot`), in the tissue regime
+        ``tissue`` (PNG bytes, :func:`~octcl.host.batch.report.tissue_panel` of the
+        written phantom's attenuation), ``cpu_s`` (this
         process's CPU seconds, all threads, while inverting), ``wall_s``,
         ``worker`` (host name and process id).
 
@@ -73,7 +75,9 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     from ..threads import available_cores
     from ..pipeline.invert import TimeBudgetExceeded, invert
     from ..pipeline.target import decode_target
-    from .report import comparison_panel, score_plot
+    from octcl.tissue import attenuation_map, transmission_map
+
+    from .report import comparison_panel, score_plot, tissue_panel
 
     started, cpu_started = time.monotonic(), time.process_time()
     config = options.get("config", DEFAULT_CONFIG)
@@ -91,13 +95,17 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
         cpu_s = time.process_time() - cpu_started
         phantom = phantom_path.read_bytes()
         report = json.loads(report_path.read_text(encoding="utf-8"))
-        rendering = render(Phantom.load(phantom_path, config, y_limit_um=CONTRACT_Y_LIMIT_UM), config)
+        written = Phantom.load(phantom_path, config, y_limit_um=CONTRACT_Y_LIMIT_UM)
+        rendering = render(written, config)
     report["target"] = name
     score = "left out (time budget)" if result.score is None else f"{result.score:.5f}"
     title = f"{name}: score {score} after {result.seconds['total']:.0f} s"
-    return {"name": name, "phantom": phantom, "report": report,
-            "panel": comparison_panel(target, rendering.levels, title),
-            "plot": score_plot({name: report["trace"]}, name),
+    pictures = {"panel": comparison_panel(target, rendering.levels, title),
+                "plot": score_plot({name: report["trace"]}, name)}
+    if options.get("regime") == "tissue":
+        pictures["tissue"] = tissue_panel(target, attenuation_map(transmission_map(written, config), config),
+                                          f"{name}: attenuation")
+    return {"name": name, "phantom": phantom, "report": report, **pictures,
             "cpu_s": cpu_s, "wall_s": time.monotonic() - started, "worker": f"{platform.node()}:{os.getpid()}"}
 
 

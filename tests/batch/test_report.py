@@ -11,9 +11,13 @@ import pytest
 from PIL import Image
 
 from octcl.host.batch import report
-from octcl.host.batch.report import (COLUMNS, best_so_far, comparison_panel, read_summary_csv, score_plot,
-                                     write_reports)
+from octcl.host.batch.report import (COLUMNS, PICTURES, best_so_far, comparison_panel, read_summary_csv, score_plot,
+                                     tissue_panel, write_reports)
+from octcl.host.stage1.levels import target_magnitude
+from octcl.phantom import Phantom
+from octcl.render import render
 from octcl.scorer import COMPONENTS
+from octcl.tissue import scan_attenuation
 
 SETTINGS = {"octcl_version": "0.1.0", "time_budget_s": 30.0, "seed": 0, "options": {}}
 
@@ -37,7 +41,7 @@ def make_rows(count: int) -> dict:
 def pictures(name):
     levels = np.random.default_rng(len(name)).integers(0, 256, (256, 512), dtype=np.uint8)
     trace = [{"time_s": 1.0, "score": None}, {"time_s": 2.0, "score": 0.9}, {"time_s": 3.0, "score": 0.95}]
-    return comparison_panel(levels, levels, name), score_plot({name: trace}, name)
+    return {"panel": comparison_panel(levels, levels, name), "plot": score_plot({name: trace}, name)}
 
 
 def test_summary_files_and_html_table_agree(tmp_path, report_table):
@@ -100,6 +104,49 @@ def test_html_is_self_contained_with_every_panel_inline(tmp_path, monkeypatch):
     html = (tmp_path / "report.html").read_text()
     assert len(re.findall(r"data:image/png", html)) == 2 and "Panels of the 1 lowest-scoring scans" in html
     assert re.findall(r'<section id="[^"]+"><h2>([^<]+):', html) == [done[0]["scan"]]
+
+
+def test_a_tissue_scan_shows_its_attenuation_panel_after_the_other_two(tmp_path):
+    """A scan with a ``tissue`` picture has three images in its section, in PICTURES' order; the others two."""
+    rows = make_rows(4)
+    tissue_scan = next(name for name, row in rows.items() if row["status"] == "inverted")
+    target = render(Phantom.skin(1)).levels
+    attenuation = np.zeros(target.shape)
+
+    def with_tissue(name):
+        found = pictures(name)
+        if name == tissue_scan:
+            found["tissue"] = tissue_panel(target, attenuation, name)
+        return found
+
+    write_reports(tmp_path, rows, SETTINGS, None, 1.0, with_tissue)
+    page = (tmp_path / "report.html").read_text()
+    sections = dict(re.findall(r'<section id="[^"]+"><h2>([^<]+):(.*?)</section>', page, re.S))
+    assert len(re.findall(r"<img ", sections[tissue_scan])) == 3
+    assert all(len(re.findall(r"<img ", body)) == 2 for name, body in sections.items() if name != tissue_scan)
+    alts = re.findall(r'<img alt="([^"]+)"', sections[tissue_scan])
+    assert alts == [html.escape(f"{tissue_scan}: {what}") for what in PICTURES.values()]
+
+
+def test_the_tissue_panel_shows_the_phantoms_attenuation_on_the_targets_scale():
+    """Three panels side by side, the two µ panels on one colour scale: a phantom whose µ is the target's own
+    estimate looks as the middle panel does (the same mean colour over the same region), one with a third of
+    it is darker, one with µ = 0 is one colour (the colour map's bottom); the target's OAC map never changes."""
+    target = render(Phantom.skin(1)).levels
+    estimate = scan_attenuation(target_magnitude(target))
+    same, third, flat = (np.asarray(Image.open(io.BytesIO(tissue_panel(target, mu, "t"))).convert("RGB"))
+                         .astype(float) for mu in (estimate, estimate / 3, np.zeros(target.shape)))
+    assert same.shape == (340, 1500, 3)
+    assert np.array_equal(same[:, :480], flat[:, :480])
+    rows = slice(100, 200)  # depth pixels ~60–160, inside the axes; the µ panels' axes start 465 pixels apart
+    middle, right = (slice(600, 850), slice(1065, 1315))
+
+    def mean_colour(image, columns):
+        return image[rows, columns].reshape(-1, 3).mean(axis=0)
+
+    np.testing.assert_allclose(mean_colour(same, right), mean_colour(same, middle), atol=2.0)
+    assert mean_colour(third, right).sum() < 0.6 * mean_colour(third, middle).sum()
+    assert len(np.unique(flat[rows, right].reshape(-1, 3), axis=0)) == 1
 
 
 def test_comparison_panel_shows_target_above_rendering():

@@ -20,7 +20,8 @@ def test_targets_are_found_recursively_and_outputs_mirror_the_tree(tmp_path):
     for name in ("Male/1990-2000/Cheek/a.npy", "Male/1990-2000/Cheek/b.png", "c.png", "Female/d.npy"):
         touch(targets / name)
     # Not targets: map files, a batch's own pictures, hidden files and folders, other files, the output folder.
-    for name in ("c_OAC.png", "c_SC.png", "c_RSC.png", "Female/d.panel.png", "Female/d.score.png", ".e.npy",
+    for name in ("c_OAC.png", "c_SC.png", "c_RSC.png", "Female/d.panel.png", "Female/d.score.png", "c.tissue.png",
+                 ".e.npy",
                  ".cache/f.npy", "notes.txt", "out/g.npy"):
         touch(targets / name)
     scans = find_scans(targets, out)
@@ -32,6 +33,20 @@ def test_targets_are_found_recursively_and_outputs_mirror_the_tree(tmp_path):
     assert cheek.output("report") == out / "Male/1990-2000/Cheek/a.report.json"
     assert cheek.output("panel") == out / "Male/1990-2000/Cheek/a.panel.png"
     assert cheek.output("plot") == out / "Male/1990-2000/Cheek/a.score.png"
+
+
+def test_a_scans_pictures_are_this_runs_only(tmp_path):
+    """The pictures written are read back; a later run without an attenuation panel (another regime) leaves
+    none of the earlier run's; a scan missing its panel has no pictures to show."""
+    scan = find_scans(touch(tmp_path / "t/a.png").parent, tmp_path / "out")[0]
+    scan.output("panel").parent.mkdir(parents=True)
+    tissue_run = {"panel": b"panel 1", "plot": b"plot 1", "tissue": b"tissue 1"}
+    scan.write_pictures(tissue_run)
+    assert scan.read_pictures() == tissue_run
+    scan.write_pictures({"panel": b"panel 2", "plot": b"plot 2"})
+    assert scan.read_pictures() == {"panel": b"panel 2", "plot": b"plot 2"} and not scan.output("tissue").exists()
+    scan.output("panel").unlink()
+    assert scan.read_pictures() is None
 
 
 def test_clashing_and_missing_targets_are_refused(tmp_path):
