@@ -2,9 +2,11 @@
 
 ``time OUT --scans DIR --extra DIR``: runs the default ``python -m octcl.cli invert TARGET -o PHANTOM.txt --json
 --quiet`` on each official scan (``DIR/Scan_*.png`` but the ``_OAC``, ``_SC`` and ``_RSC`` maps) and on each
-PNG of ``--extra`` (the real scan orange, also with ``--time-budget 3``), one process each, and appends one JSON
-line a run to ``OUT/timings.jsonl``: the process's wall time as this parent saw it, its exit status and invert's
-JSON document. Standard error of failed runs goes to ``OUT/invert.log``.
+PNG of ``--extra`` (the real scan orange, also with ``--time-budget 3``, and in the tissue regime with
+``--time-budget`` :data:`TISSUE_BUDGET_S` and a report, whose stage-3 timings per part are kept: what a step of
+stage 3 costs on the machine), one process each, and appends one JSON line a run to ``OUT/timings.jsonl``: the
+process's wall time as this parent saw it, its exit status and invert's JSON document. Standard error of failed
+runs goes to ``OUT/invert.log``.
 
 ``table OUT``: writes ``OUT/gpu_check.md`` from ``env.txt``, ``devices.txt``, ``timings.jsonl``,
 ``kernel_tests.xml`` and ``kernel_tests.txt`` there.
@@ -25,6 +27,10 @@ from pathlib import Path
 MAPS = ("_OAC", "_SC", "_RSC")
 STAGES = ("field", "decode", "setup", "refine", "written", "total")
 IMPLEMENTATIONS = ("nvidia", "amd", "intel-gpu", "pocl", "intel", "oclgrind")
+#: The tissue regime's run on each extra scan: long enough for its pixel phase and some full-loss steps.
+TISSUE_BUDGET_S = 30
+#: Stage 3's parts as the report's ``refine_timings_s`` names them.
+REFINE_PARTS = ("set_phantom", "forward", "loss", "adjoint", "adam", "exact_score")
 
 
 def runs(scans: Path, extra: Path | None, only: set[str]) -> list[tuple[str, Path, list[str]]]:
@@ -34,7 +40,8 @@ def runs(scans: Path, extra: Path | None, only: set[str]) -> list[tuple[str, Pat
         raise SystemExit(f"gpu_check_table: no Scan_*.png scans in {scans}")
     found = [(p.stem, p, []) for p in targets]
     for p in sorted(extra.glob("*.png")) if extra and extra.is_dir() else []:
-        found += [(p.stem, p, []), (f"{p.stem} --time-budget 3", p, ["--time-budget", "3"])]
+        found += [(p.stem, p, []), (f"{p.stem} --time-budget 3", p, ["--time-budget", "3"]),
+                  (f"{p.stem} --regime tissue", p, ["--regime", "tissue", "--time-budget", str(TISSUE_BUDGET_S)])]
     if only:
         unknown = only - {label.split()[0] for label, _, _ in found}
         if unknown:
@@ -54,8 +61,9 @@ def time_runs(args) -> int:
     with open(out / "timings.jsonl", "a") as jsonl, open(out / "invert.log", "a") as log:
         for order, (label, target, options) in enumerate(runs(Path(args.scans), Path(args.extra) if args.extra else None, only)):
             phantom = work / f"{label.replace(' ', '_')}.txt"
+            report = phantom.with_suffix(".report.json")
             command = [sys.executable, "-m", "octcl.cli", "invert", str(target), "-o", str(phantom), *options,
-                       "--json", "--quiet"]
+                       *(["--report", str(report)] if "--regime" in options else []), "--json", "--quiet"]
             record = {"run": label, "order": order, "target": target.name, "options": options,
                       "command": " ".join(["python", *command[1:]])}
             timeout = min(args.timeout, end - time.monotonic())
@@ -86,6 +94,10 @@ def time_runs(args) -> int:
                 record["error"] = lines[-1] if lines else f"exit status {rc}, no message"
                 log.write(f"===== {label} (exit {rc}, {wall:.1f} s): {record['command']}\n{stderr[-20000:]}\n")
                 log.flush()
+            if report.exists():  # stage 3's seconds per part, and its steps
+                contents = json.loads(report.read_text())
+                record["refine"] = {"timings_s": contents.get("refine_timings_s"),
+                                    "iterations": contents.get("iterations")}
             jsonl.write(json.dumps(record) + "\n")
             jsonl.flush()
             result = record["result"] or {}
@@ -180,6 +192,19 @@ def table(args) -> int:
             str(result.get("stop_reason", "–")), str(result.get("iterations", "–")),
             "timed" if result and result.get("threads") is None else str(result.get("threads", "–")),
             _number(result.get("peak_memory_mib"), 0)]) + " |")
+    refined = [record for record in records if (record.get("refine") or {}).get("timings_s")
+               and record["refine"].get("iterations")]
+    if refined:
+        lines += ["", "## Stage 3's step", "",
+                  "Milliseconds per stage-3 step by part (the report's `refine_timings_s` over its iterations; "
+                  "`exact_score` is spent at checkpoints only, spread over the steps here).", "",
+                  "| run | steps | " + " | ".join(f"{part} ms" for part in REFINE_PARTS) + " | all ms |",
+                  "|---|---|" + "---|" * (len(REFINE_PARTS) + 1)]
+        for record in refined:
+            timings, steps = record["refine"]["timings_s"], record["refine"]["iterations"]
+            lines.append(f"| {record['run']} | {steps} | " + " | ".join(
+                _number(1000 * timings.get(part, 0.0) / steps, 1) for part in REFINE_PARTS)
+                + f" | {_number(1000 * sum(timings.values()) / steps, 1)} |")
     errors = [f"- {record['run']}: {record['error']}" for record in records if record.get("error")]
     if errors:
         lines += ["", "Errors (invert.log has their standard error):", "", *errors]

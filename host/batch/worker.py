@@ -67,18 +67,18 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     count, set by :class:`octcl.host.batch.runner.OneScanPerWorker`). Other
     failures raise, so that Dask retries the scan.
     """
-    import torch
-
     from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
     from octcl.render import render
+    from octcl.tissue import attenuation_map, transmission_map
+    from octcl.torch_import import import_torch
 
     from ..threads import available_cores
     from ..pipeline.invert import TimeBudgetExceeded, invert
     from ..pipeline.target import decode_target
-    from octcl.tissue import attenuation_map, transmission_map
 
     from .report import comparison_panel, score_plot, tissue_panel
 
+    torch = import_torch()
     started, cpu_started = time.monotonic(), time.process_time()
     config = options.get("config", DEFAULT_CONFIG)
     try:

@@ -69,6 +69,7 @@ import numpy as np
 from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
+from octcl.torch_import import import_torch, torch_import_s
 
 from ..stage1.backend import BACKENDS, make_backend
 from ..stage1.ceiling import WRITABLE, aimed_levels, measure_ceiling
@@ -156,10 +157,10 @@ EXIT_RESERVE_S = 0.25
 #: Seconds :func:`octcl.tissue.tissue_figures` takes on a 295,000-row phantom (1.0–1.4 s on two cores, ``octcl
 #: phantom-stats``), with a margin.
 TISSUE_FIGURES_S = 2.0
-#: Seconds of a run's first exact score, before one has been timed: torch's import, the LPIPS network and
-#: the target's maps and features, one score (1.0 + 0.18 + 0.25 s on orange.png on two cores,
-#: ``scripts/bench_aim.py``), with a margin of a quarter.
-SCORE_FIRST_S = 1.8
+#: Seconds of a run's first exact score beyond torch's import (:func:`octcl.torch_import.torch_import_s`, which
+#: is known per machine), before one has been timed: the LPIPS network and the target's maps and features, one
+#: score (0.18 + 0.25 s on orange.png on two cores, ``scripts/bench_aim.py``), with a margin.
+SCORER_BUILD_S = 0.6
 
 
 @dataclass
@@ -470,6 +471,7 @@ class _LazyExactScore:
 
     def built(self):
         if self._score is None:
+            import_torch()  # timed, for the next run's estimates
             from ..stage3.loss import ExactScore
 
             self._score = ExactScore(self.target)
@@ -484,10 +486,11 @@ class _LazyExactScore:
 
     def cost_s(self, levels) -> float:
         """Seconds a call for ``levels`` would take: 0 for an image scored before (or a grey target's own), the
-        last computation's time once one ran, else :data:`SCORE_FIRST_S` (torch, the network, one score)."""
+        last computation's time once one ran, else torch's import where it is still to come and
+        :data:`SCORER_BUILD_S` (the network, one score)."""
         if self._perfect(levels) or self._key(levels) in self.scores:
             return 0.0
-        return self.seconds if self.scores else SCORE_FIRST_S
+        return self.seconds if self.scores else torch_import_s() + SCORER_BUILD_S
 
     def __call__(self, levels):
         if self._perfect(levels):

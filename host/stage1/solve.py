@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...render import Rendering
+from ...torch_import import torch_import_s
 from .aim import AimSearch
 from .backend import Backend
 from .display import fit_field
@@ -61,9 +62,10 @@ from .projections import regularised_start, retrieve_field
 PROJECTION_SHARE = 0.5
 #: Each step's share of the time left when it starts, unless the step says otherwise (module docstring).
 DEFAULT_SHARES = {"display": 0.5, "project": PROJECTION_SHARE, "hinge": 1.0, "aim": 0.7}
-#: Seconds of the aim step's first round, before it has a pace: torch's import, the loss's LPIPS network and
-#: target maps, a gradient and an exact score (2–3 s on two cores).
-AIM_FIRST_ROUND_S = 2.5
+#: Seconds of the aim step's first round beyond torch's import (:func:`octcl.torch_import.torch_import_s`,
+#: known per machine), before it has a pace: the loss's LPIPS network and target maps, a gradient and an exact
+#: score (2–3 s on two cores with the import's 1.0–1.2 s).
+AIM_FIRST_ROUND_S = 1.5
 #: Rounds of the default schedules' aim step (:func:`default_schedules`).
 DEFAULT_AIM_ROUNDS = 4
 #: Projections, then hinge iterations at most, for the field to follow the aim step's moves (a few tens of
@@ -316,7 +318,7 @@ def _aim_step(solve: FieldSolve, rounds: int, budget_s, progress):
     Nothing to do (and no torch) for a target without unwritable levels.
     Under a budget a round starts only while the rounds so far, at their
     measured pace (the first with the loss's construction, an estimate of
-    :data:`AIM_FIRST_ROUND_S` before it), and the field's reach
+    torch's import where it is still to come and :data:`AIM_FIRST_ROUND_S` before it), and the field's reach
     (:data:`AIM_REACH_S`) end within it.
     """
     if solve.score is None:
@@ -330,7 +332,7 @@ def _aim_step(solve: FieldSolve, rounds: int, budget_s, progress):
     kept, aim_score = [solve.aim], None  # the aims the rounds kept, the first the field's own
     while taken < rounds and not search.done:
         spent = time.perf_counter() - start
-        pace = spent / taken if taken else AIM_FIRST_ROUND_S
+        pace = spent / taken if taken else torch_import_s() + AIM_FIRST_ROUND_S
         if budget_s is not None and spent + pace + AIM_REACH_S > budget_s:
             clock_steps = 1
             break

@@ -124,6 +124,7 @@ import numpy as np
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import SIGNIFICANT_DIGITS, Phantom, round_significant
 from octcl.render import Rendering, display_vjp
+from octcl.torch_import import import_torch
 
 from ..optim.adam import Adam
 from ..threads import available_cores
@@ -369,6 +370,7 @@ class _Refiner:
         first exact evaluation (``octcl invert --time-budget 10``) builds none.
         """
         if terms not in self._losses:
+            import_torch()  # timed, for the next run's estimates
             from .loss import DisplayLoss
 
             self._losses[terms] = DisplayLoss(self.scan, self.schedule.loss_weights.for_terms(terms))

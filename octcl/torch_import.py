@@ -1,0 +1,132 @@
+"""What importing torch costs on this machine, known before it is paid.
+
+A time budget is the process's (``octcl invert --time-budget``), and torch
+comes into a run only where it is needed: the exact score, the aim step's
+loss, stage 3's loss. Whether a step fits is decided before it starts, so
+the import's cost must be known before the import. It differs by more than
+the rest of a short run:
+
+- torch 2.13.0's CPU build imports in 1.0–1.2 s on two cores of an AMD EPYC
+  (``scripts/bench_aim.py``);
+- torch 2.11.0+cu130 took 5.3 s on an NVIDIA H200 machine (16 Xeon cores),
+  with its files in the page cache (docs/benchmarks.md, "GPU check"): a
+  ``--time-budget 6`` run that took the CPU figure for it would have ended
+  about 4 s late.
+
+So :func:`import_torch` times the import where it happens and keeps the last
+:data:`KEPT_TIMES` figures in octcl's cache (:func:`octcl.device.runtime.cache_dir`),
+per Python interpreter and torch version; :func:`torch_import_s` answers 0
+once torch is imported, the median of the figures kept where there are some
+(an import from a cold page cache takes longer than the next ones: 1.6–1.7 s
+against 1.1 s here; the callers' margins cover the difference), else
+:data:`CPU_BUILD_IMPORT_S` for a CPU build and :data:`OTHER_BUILD_IMPORT_S`
+for a CUDA or ROCm one. Which build is installed is read from the
+distribution's metadata, which does not import torch: a version ending
+``+cpu`` is a CPU build, ``+cu…`` or ``+rocm…`` not, and one without a local
+part (PyPI's own wheels) is a CUDA build where it requires NVIDIA's
+``nvidia-*`` packages (Linux) and a CPU build where it does not.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from importlib import metadata
+
+#: Seconds ``import torch`` is taken to cost for a CPU build nothing was measured for (1.0–1.2 s measured).
+CPU_BUILD_IMPORT_S = 1.2
+#: The same for a CUDA or ROCm build (5.3 s measured for 2.11.0+cu130), with a margin.
+OTHER_BUILD_IMPORT_S = 6.0
+#: The cache file of measured import times.
+CACHE_FILE = "torch_import.json"
+#: Measured import times kept per interpreter and torch version.
+KEPT_TIMES = 5
+
+
+def _torch_version() -> str | None:
+    try:
+        return metadata.version("torch")
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _key(version: str) -> str:
+    return f"{sys.executable} torch {version}"
+
+
+def _cache_path():
+    from .device.runtime import cache_dir
+
+    return cache_dir() / CACHE_FILE
+
+
+def _measured() -> dict:
+    try:
+        measured = json.loads(_cache_path().read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return measured if isinstance(measured, dict) else {}
+
+
+def _times(measured: dict, version: str) -> list[float]:
+    times = measured.get(_key(version))
+    return [float(value) for value in times if isinstance(value, (int, float))] if isinstance(times, list) else []
+
+
+def torch_import_s() -> float:
+    """Seconds ``import torch`` would take now: 0 once imported, else the figure measured here before, else the
+    build's default (module docstring)."""
+    if "torch" in sys.modules:
+        return 0.0
+    version = _torch_version()
+    if version is None:
+        return CPU_BUILD_IMPORT_S  # the import will fail and say why; nothing to wait for
+    times = sorted(value for value in _times(_measured(), version) if value >= 0)
+    if times:
+        middle = len(times) // 2
+        return times[middle] if len(times) % 2 else (times[middle - 1] + times[middle]) / 2
+    return CPU_BUILD_IMPORT_S if _cpu_build(version) else OTHER_BUILD_IMPORT_S
+
+
+def _cpu_build(version: str) -> bool:
+    local = version.partition("+")[2]
+    if local:
+        return local == "cpu"
+    try:
+        requirements = metadata.requires("torch") or []
+    except metadata.PackageNotFoundError:
+        requirements = []
+    return not any(requirement.lower().startswith("nvidia-") for requirement in requirements)
+
+
+def record_import_s(seconds: float) -> None:
+    """Keep ``seconds`` as an import time of this interpreter's torch (the last :data:`KEPT_TIMES` stay); a cache
+    that cannot be written is left as it is."""
+    version = _torch_version()
+    if version is None:
+        return
+    from ._io import atomic_write
+
+    measured = _measured()
+    measured[_key(version)] = [*_times(measured, version), round(float(seconds), 3)][-KEPT_TIMES:]
+    try:
+        with atomic_write(_cache_path(), "w") as handle:
+            json.dump(measured, handle, indent=1)
+    except OSError:
+        pass
+
+
+def import_torch():
+    """``import torch``, timed where it is the first in this process and the time kept for
+    :func:`torch_import_s` (:func:`record_import_s`); returns the module."""
+    if "torch" in sys.modules:
+        return sys.modules["torch"]
+    start = time.perf_counter()
+    import torch
+
+    record_import_s(time.perf_counter() - start)
+    return torch
+
+
+__all__ = ["CACHE_FILE", "CPU_BUILD_IMPORT_S", "KEPT_TIMES", "OTHER_BUILD_IMPORT_S", "import_torch", "record_import_s", "torch_import_s"]
