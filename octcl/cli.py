@@ -289,9 +289,10 @@ def _shadow_text(figures: dict) -> str:
 
 
 def _attenuation_text(figures: dict) -> str:
-    """The median attenuation over the visible tissue, or why there is none."""
+    """The median attenuation over the visible tissue, the scan's own estimate beside it, or why there is none."""
     value = figures["attenuation_per_mm_median"]
-    return "- (no visible tissue)" if value is None else f"{value:.3g} /mm"
+    return "- (no visible tissue)" if value is None else \
+        f"{value:.3g} /mm (the scan's own depth-resolved estimate {figures['scan_attenuation_per_mm_median']:.3g} /mm)"
 
 
 def _ceiling_score(value) -> str:

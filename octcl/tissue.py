@@ -18,7 +18,9 @@ the two apart and compare a phantom with another (its truth):
   sees of them: n·E, which the scan can tell, not E alone);
 - :func:`attenuation_map`: µ = −d ln T/dz in mm⁻¹ per pixel, the phantom's
   own attenuation coefficient (OCT intensity decays as e^{−2µz});
-- :func:`tissue_figures`: all of them, and the energies' percentiles;
+- :func:`tissue_figures`: all of them, the energies' percentiles, and the
+  median µ the target's own levels give (:func:`scan_attenuation`) beside
+  the phantom's;
 - :func:`scan_attenuation`: µ of a scan itself, the depth-resolved estimate
   from its intensities (what the OAC map is built on), in the same unit, so
   that a phantom's own attenuation can be set beside its target's.
@@ -123,14 +125,18 @@ def tissue_figures(phantom: Phantom, levels: np.ndarray, config: ScannerConfig =
                    transmission: np.ndarray | None = None) -> dict:
     """The figures of the module docstring for ``phantom`` against the target ``levels`` (its visible tissue);
     ``transmission``: its :func:`transmission_map`, where the caller has it already."""
+    from .host.stage1.levels import target_magnitude
+
     transmission = transmission_map(phantom, config) if transmission is None else transmission
     energy = phantom.energy_pct
     attenuation = attenuation_map(transmission, config)
     visible = levels >= VISIBLE_LEVEL
+    scans_own = scan_attenuation(target_magnitude(levels), config)
     return {"scatterers": int(len(phantom)),
             "energy_pct": {f"p{q}": float(np.percentile(energy, q)) for q in (5, 50, 95)} | {"max": float(energy.max())},
             "shadow_db": shadow_db(transmission, levels),
             "attenuation_per_mm_median": float(np.median(attenuation[visible])) if visible.any() else None,
+            "scan_attenuation_per_mm_median": float(np.median(scans_own[visible])) if visible.any() else None,
             "band_um": BAND_UM, "band_densities_pct": band_densities(phantom, config).tolist(),
             "bands_with_signal": bands_with_signal(levels, config).tolist()}
 

@@ -32,6 +32,7 @@ JSON_KEYS = {
                "fixed_schedule", "threads", "reproduce", "reproducible", "ceiling", "exact_share", "avoidable_share",
                "tissue", "report"},
     "phantom-stats": {"phantom", "target", "scatterers", "energy_pct", "shadow_db", "attenuation_per_mm_median",
+                      "scan_attenuation_per_mm_median",
                       "band_um", "band_densities_pct", "bands_with_signal", "seconds"},
     "invert --targets": {"scans", "counts", "medians", "score", "median_seconds", "unscored", "octcl_version",
                          "time_budget_s",
