@@ -13,7 +13,13 @@ pixels at the target's level are printed, one JSON row per run:
   (lr_z_um, lr_u), as long as the clock lets it;
 - ``tissue``: :data:`octcl.host.pipeline.invert.TISSUE_SCHEDULE`, the
   tissue regime's default, its pixel phase ``--pixel-steps`` long when
-  given (one run for each length).
+  given (one run for each length);
+- ``tissue-no-lpips``: the same with ``--no-lpips-steps`` steps of the loss
+  without its LPIPS terms (a fifth of a full step's cost) between the pixel
+  phase and the full loss (one run for each length);
+- ``tissue-lpips-every``: the same as ``tissue`` with the LPIPS terms'
+  gradient computed every ``--lpips-every`` steps and reused between
+  (:attr:`~octcl.host.stage3.schedule.RefineSchedule.lpips_every`).
 
 Example::
 
@@ -21,6 +27,8 @@ Example::
     python scripts/bench_tissue_refine.py --skin 5 --schedules tissue --pixel-steps 500 --seconds 120 --out OUT
     python scripts/bench_tissue_refine.py --skin 6 --real ../shared/data/real/orange.png --schedules tissue \
         --pixel-steps 250 120 60 --seconds 20 --out OUT
+    python scripts/bench_tissue_refine.py --skin 6 --real ../shared/data/real/orange.png OUT/targets/plain_skin_1.png \
+        --schedules tissue tissue-no-lpips tissue-lpips-every --no-lpips-steps 60 150 --seconds 30 --out OUT
 """
 
 from __future__ import annotations
@@ -43,34 +51,45 @@ from octcl.phantom import Phantom
 from octcl.render import render
 
 #: Schedules by name (module docstring); ``pixel`` takes its rates from the command line.
-SCHEDULES = ("full", "pixel", "tissue")
+SCHEDULES = ("full", "pixel", "tissue", "tissue-no-lpips", "tissue-lpips-every")
 
 
-def schedule_named(name: str, pixel_rates: tuple[float, float], pixel_steps: int | None) -> RefineSchedule:
+def schedule_named(name: str, pixel_rates: tuple[float, float], steps: int | None,
+                   lpips_every: int = 1) -> RefineSchedule:
+    """The schedule called ``name`` (module docstring); ``steps`` the pixel phase's length (``tissue``) or the
+    loss-without-LPIPS phase's (``tissue-no-lpips``)."""
     if name == "full":
         return RefineSchedule()
     if name == "pixel":
         return RefineSchedule(phases=(Phase(100_000, *pixel_rates, terms="pixel"),), restarts=())
-    if pixel_steps is None:
-        return TISSUE_SCHEDULE
     first, *rest = TISSUE_SCHEDULE.phases
-    return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, iterations=pixel_steps), *rest))
+    if name == "tissue-no-lpips":
+        main = rest[0]
+        middle = Phase(steps, main.lr_z_um, main.lr_u, terms="no_lpips")
+        return dataclasses.replace(TISSUE_SCHEDULE, phases=(first, middle, *rest))
+    if name == "tissue-lpips-every":
+        return dataclasses.replace(TISSUE_SCHEDULE, lpips_every=lpips_every)
+    if steps is None:
+        return TISSUE_SCHEDULE
+    return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, iterations=steps), *rest))
 
 
-def bench(name: str, target: Path, names: list[str], seconds: float, pixel_rates, pixel_steps: list, out: Path) -> None:
+def bench(name: str, target: Path, names: list[str], seconds: float, pixel_rates, lengths: dict, lpips_every: int,
+          out: Path) -> None:
     levels = target_levels(target_scan(read_target(target)), DEFAULT_CONFIG)
     start_path = out / f"{name}_start.txt"
     if not start_path.exists():  # stages 1–2 once per target and folder
         invert(target, start_path, regime="tissue", iterations=0, threads=2)
     start = Phantom.load(start_path)
     for schedule in names:
-        for steps in (pixel_steps if schedule == "tissue" else [None]):
+        for steps in lengths.get(schedule, [None]):
             began = time.perf_counter()
-            result = refine(start, levels, schedule_named(schedule, pixel_rates, steps),
+            result = refine(start, levels, schedule_named(schedule, pixel_rates, steps, lpips_every),
                             deadline=time.monotonic() + seconds, threads=2)
             exact_share = float(np.mean(render(result.phantom).levels == levels))
             print(json.dumps({"target": name, "schedule": schedule, "pixel_rates": pixel_rates,
-                              "pixel_steps": steps, "seconds": round(time.perf_counter() - began, 1),
+                              "steps_of_phase": steps,
+                              "lpips_every": lpips_every if schedule == "tissue-lpips-every" else None, "seconds": round(time.perf_counter() - began, 1),
                               "steps": result.iterations, "start_score": result.initial_components["mean"],
                               "score": result.components["mean"], "exact_share": exact_share}), flush=True)
 
@@ -85,6 +104,9 @@ def main(argv=None) -> None:
                         help="the pixel schedule's learning rates (default 0.001 0.02)")
     parser.add_argument("--pixel-steps", nargs="+", type=int, default=[None],
                         help="the tissue schedule's pixel steps, one run each (default its own)")
+    parser.add_argument("--no-lpips-steps", nargs="+", type=int, default=[60],
+                        help="tissue-no-lpips: its phase without the LPIPS terms, one run each (default 60)")
+    parser.add_argument("--lpips-every", type=int, default=3, help="tissue-lpips-every's period (default 3)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -94,7 +116,8 @@ def main(argv=None) -> None:
         write_grey_png(targets[-1][1], render(Phantom.skin(seed)).levels)
     targets += [(path.stem, path) for path in args.real]
     for name, target in targets:
-        bench(name, target, args.schedules, args.seconds, tuple(args.pixel_rates), args.pixel_steps, args.out)
+        bench(name, target, args.schedules, args.seconds, tuple(args.pixel_rates),
+              {"tissue": args.pixel_steps, "tissue-no-lpips": args.no_lpips_steps}, args.lpips_every, args.out)
 
 
 if __name__ == "__main__":
