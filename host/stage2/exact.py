@@ -263,14 +263,20 @@ def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
 
 def _kept_pairs(placed, config, offsets, shadow, pairs):
     """``pairs``, with :func:`shadow_pairs` for the cells of ``placed`` whose value is not strictly inside its
-    pair (every cell at first); chosen again only where some cell left its pair."""
+    pair (every cell at first); chosen again only for the cells that left their pair: the choice is per cell,
+    so these are the pairs a choice over every cell gives, for the cost of the few that moved."""
     values, carriers = _carrier_free(placed, config), row_carriers(config, offsets)
     if pairs is None:
         return shadow_pairs(values, carriers, shadow)
     c1, c2 = _pair_carriers(carriers, pairs, values.shape)
     within = np.angle(values / c1) % (2 * np.pi)
-    inside = (within > 0) & (within < np.angle(c2 / c1) % (2 * np.pi))
-    return pairs if inside.all() else np.where(inside, pairs, shadow_pairs(values, carriers, shadow))
+    outside = ~((within > 0) & (within < np.angle(c2 / c1) % (2 * np.pi)))
+    if not outside.any():
+        return pairs
+    everywhere = np.broadcast_to(carriers, (carriers.shape[0],) + values.shape)
+    chosen = pairs.copy()
+    chosen[:, outside] = shadow_pairs(values[outside], everywhere[:, outside], shadow[outside])
+    return chosen
 
 
 def phantom_of_rows(amplitude: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
