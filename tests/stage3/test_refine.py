@@ -384,6 +384,27 @@ def test_a_start_at_its_aimed_levels_is_not_refined(stage2_phantom, layers_targe
     assert runs.iterations == 2 and runs.stop_reason == "schedule"
 
 
+def test_the_pixel_phase_compares_with_the_aimed_levels(stage2_phantom, layers_target):
+    """With ``aim``, the pixel term alone compares the rendering with the aimed levels (a level the scanner
+    never writes cannot be reached); without, with the target. At zero learning rates the first step's loss
+    is the term at the start: mean|P − P*| + mean((P − P*)²), P* the aim's scan or the target's."""
+    from octcl.render import render
+
+    start = Phantom(*(saved_precision(getattr(stage2_phantom, name)) for name in ("x_um", "y_um", "z_um",
+                                                                                  "energy_pct")))
+    rendered = render(start).levels
+    aim = rendered.copy()
+    aim[::7, ::5] = np.where(aim[::7, ::5] > 128, GREY_LUT[0], GREY_LUT[255])  # far from the start somewhere
+    schedule = RefineSchedule(phases=(Phase(1, 0.0, 0.0, terms="pixel"),), restarts=(), min_gain=None)
+    scan = scan_of_levels(rendered).astype(np.float64)
+    for levels_compared, given in ((aim, aim), (np.asarray(layers_target), None)):
+        result = refine(start, layers_target, schedule, threads=1, aim=given)
+        difference = scan - scan_of_levels(levels_compared).astype(np.float64)
+        expected = np.abs(difference).mean() + (difference**2).mean()
+        loss = next(entry["loss"] for entry in result.trace if entry["loss"] is not None)
+        assert loss == pytest.approx(expected, rel=1e-5)
+
+
 class _CostlyScore:
     """An exact score that says a call costs ``seconds``; it answers with ``score`` (without one it fails)."""
 
