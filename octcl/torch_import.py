@@ -8,10 +8,10 @@ the rest of a short run:
 
 - torch 2.13.0's CPU build imports in 1.0–1.2 s on two cores of an AMD EPYC
   (``scripts/bench_aim.py``);
-- torch 2.11.0+cu130 took 5.3 s on an NVIDIA H200 machine (16 Xeon cores),
-  with its files in the page cache (docs/benchmarks.md, "GPU check"): a
-  ``--time-budget 6`` run that took the CPU figure for it would have ended
-  about 4 s late.
+- torch 2.11.0+cu130 took 2.9–5.3 s on an NVIDIA H200 machine (16 Xeon
+  cores; docs/benchmarks.md, "On an NVIDIA H200 (0.8.0)"): a
+  ``--time-budget 6`` run there, done at 3.2 s, would have started its score
+  on the CPU figure and ended at about 7 s.
 
 So :func:`import_torch` times the import where it happens and keeps the last
 :data:`KEPT_TIMES` figures in octcl's cache (:func:`octcl.device.runtime.cache_dir`),
@@ -30,13 +30,14 @@ part (PyPI's own wheels) is a CUDA build where it requires NVIDIA's
 from __future__ import annotations
 
 import json
+import statistics
 import sys
 import time
 from importlib import metadata
 
 #: Seconds ``import torch`` is taken to cost for a CPU build nothing was measured for (1.0–1.2 s measured).
 CPU_BUILD_IMPORT_S = 1.2
-#: The same for a CUDA or ROCm build (5.3 s measured for 2.11.0+cu130), with a margin.
+#: The same for a CUDA or ROCm build (2.9–5.3 s measured for 2.11.0+cu130), with a margin.
 OTHER_BUILD_IMPORT_S = 6.0
 #: The cache file of measured import times.
 CACHE_FILE = "torch_import.json"
@@ -82,10 +83,9 @@ def torch_import_s() -> float:
     version = _torch_version()
     if version is None:
         return CPU_BUILD_IMPORT_S  # the import will fail and say why; nothing to wait for
-    times = sorted(value for value in _times(_measured(), version) if value >= 0)
+    times = [value for value in _times(_measured(), version) if value >= 0]
     if times:
-        middle = len(times) // 2
-        return times[middle] if len(times) % 2 else (times[middle - 1] + times[middle]) / 2
+        return statistics.median(times)
     return CPU_BUILD_IMPORT_S if _cpu_build(version) else OTHER_BUILD_IMPORT_S
 
 

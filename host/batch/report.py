@@ -114,7 +114,8 @@ def tissue_panel(target: np.ndarray, attenuation_per_mm: np.ndarray, title: str)
     from ..pipeline.target import target_scan
     from ..stage1.levels import target_levels, target_magnitude
 
-    levels = target_levels(target_scan(target))
+    scan = target_scan(target)
+    levels = target_levels(scan)
     target_attenuation = scan_attenuation(target_magnitude(levels))
     visible = levels >= VISIBLE_LEVEL
     if not visible.any():
@@ -123,7 +124,7 @@ def tissue_panel(target: np.ndarray, attenuation_per_mm: np.ndarray, title: str)
               1e-3)
     figure = Figure(figsize=(15, 3.4), dpi=100, layout="constrained")
     axes = figure.subplots(1, 3)
-    axes[0].imshow(map_levels(target_scan(target))["OAC"], cmap="gray", vmin=0, vmax=255, aspect="auto")
+    axes[0].imshow(map_levels(scan)["OAC"], cmap="gray", vmin=0, vmax=255, aspect="auto")
     axes[0].set_title("target: OAC map (the scorer's)")
     for ax, data, name in ((axes[1], target_attenuation, "target: µ, depth-resolved estimate (51 dB)"),
                            (axes[2], attenuation_per_mm, "phantom: µ from its own transmission")):

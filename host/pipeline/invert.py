@@ -69,7 +69,7 @@ import numpy as np
 from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
-from octcl.torch_import import import_torch, torch_import_s
+from octcl.torch_import import torch_import_s
 
 from ..stage1.backend import BACKENDS, make_backend
 from ..stage1.ceiling import WRITABLE, aimed_levels, measure_ceiling
@@ -475,7 +475,6 @@ class _LazyExactScore:
 
     def built(self):
         if self._score is None:
-            import_torch()  # timed, for the next run's estimates
             from ..stage3.loss import ExactScore
 
             self._score = ExactScore(self.target)

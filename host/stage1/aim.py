@@ -50,7 +50,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...torch_import import import_torch
 from .ceiling import WRITABLE
 from .levels import display_of_level
 from ..stage3.schedule import LossWeights
@@ -99,7 +98,6 @@ class AimSearch:
         other = (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)  # L ± 1 ↔ L ∓ 1
         if self._change is None or not np.array_equal(self._change[0], aim):
             if self._loss is None:
-                import_torch()  # timed, for the next run's estimates
                 from ..stage3.loss import DisplayLoss, scan_of_levels
 
                 self._loss = DisplayLoss(scan_of_levels(self.levels), SCORE_WEIGHTS)

@@ -124,7 +124,6 @@ import numpy as np
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
 from octcl.phantom import SIGNIFICANT_DIGITS, Phantom, round_significant
 from octcl.render import Rendering, display_vjp
-from octcl.torch_import import import_torch
 
 from ..optim.adam import Adam
 from ..threads import available_cores
@@ -373,7 +372,6 @@ class _Refiner:
         aimed levels where :func:`refine` has them (its docstring).
         """
         if terms not in self._losses:
-            import_torch()  # timed, for the next run's estimates
             from .loss import DisplayLoss
 
             self._losses[terms] = DisplayLoss(self.pixel_scan if terms == "pixel" else self.scan,
