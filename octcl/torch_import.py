@@ -25,6 +25,15 @@ distribution's metadata, which does not import torch: a version ending
 ``+cpu`` is a CPU build, ``+cu…`` or ``+rocm…`` not, and one without a local
 part (PyPI's own wheels) is a CUDA build where it requires NVIDIA's
 ``nvidia-*`` packages (Linux) and a CPU build where it does not.
+
+A run that will need torch can start its import at its beginning, on a
+thread (:func:`import_torch_in_background`), while stage 1 works on the
+device: the import waits on the disk and the interpreter, the stage on the
+OpenCL device, so on a GPU the two overlap almost wholly. On two CPU cores
+they share the cores (the OpenCL CPU runtime uses both), and an import
+there takes longer: its times are kept apart (:data:`BACKGROUND`), and
+:func:`torch_import_s` is what is left of such an import's expected time
+(at least :data:`BACKGROUND_LEFT_MIN_S` while it runs).
 """
 
 from __future__ import annotations
@@ -32,6 +41,7 @@ from __future__ import annotations
 import json
 import statistics
 import sys
+import threading
 import time
 from importlib import metadata
 
@@ -43,6 +53,14 @@ OTHER_BUILD_IMPORT_S = 6.0
 CACHE_FILE = "torch_import.json"
 #: Measured import times kept per interpreter and torch version.
 KEPT_TIMES = 5
+#: The cache key's suffix for imports made on a thread beside a run (module docstring).
+BACKGROUND = "background"
+#: Factor on the foreground figure for a background import nothing was measured for (module docstring).
+BACKGROUND_FACTOR = 1.5
+#: Seconds a running background import is taken to need at least, whatever its expected time says.
+BACKGROUND_LEFT_MIN_S = 0.1
+
+_background: dict = {}  # "thread" and "started" (time.perf_counter()) of this process's background import
 
 
 def _torch_version() -> str | None:
@@ -52,8 +70,8 @@ def _torch_version() -> str | None:
         return None
 
 
-def _key(version: str) -> str:
-    return f"{sys.executable} torch {version}"
+def _key(version: str, mode: str = "") -> str:
+    return f"{sys.executable} torch {version}" + (f" {mode}" if mode else "")
 
 
 def _cache_path():
@@ -70,22 +88,39 @@ def _measured() -> dict:
     return measured if isinstance(measured, dict) else {}
 
 
-def _times(measured: dict, version: str) -> list[float]:
-    times = measured.get(_key(version))
+def _times(measured: dict, version: str, mode: str = "") -> list[float]:
+    times = measured.get(_key(version, mode))
     return [float(value) for value in times if isinstance(value, (int, float))] if isinstance(times, list) else []
 
 
+def _importing() -> bool:
+    """Whether this process's background import is still running."""
+    thread = _background.get("thread")
+    return thread is not None and thread.is_alive()
+
+
 def torch_import_s() -> float:
-    """Seconds ``import torch`` would take now: 0 once imported, else the figure measured here before, else the
-    build's default (module docstring)."""
+    """Seconds ``import torch`` would take now: 0 once imported, what is left of a background import's expected
+    time while one runs, else the figure measured here before, else the build's default (module docstring)."""
+    if _importing():
+        expected = _expected_s(BACKGROUND)
+        return max(expected - (time.perf_counter() - _background["started"]), BACKGROUND_LEFT_MIN_S)
     if "torch" in sys.modules:
         return 0.0
+    return _expected_s()
+
+
+def _expected_s(mode: str = "") -> float:
+    """The median of the import times kept for ``mode`` (foreground ``""`` or :data:`BACKGROUND`), else the
+    default: the build's for the foreground, :data:`BACKGROUND_FACTOR` times the foreground's for the background."""
     version = _torch_version()
     if version is None:
         return CPU_BUILD_IMPORT_S  # the import will fail and say why; nothing to wait for
-    times = [value for value in _times(_measured(), version) if value >= 0]
+    times = [value for value in _times(_measured(), version, mode) if value >= 0]
     if times:
         return statistics.median(times)
+    if mode:
+        return BACKGROUND_FACTOR * _expected_s()
     return CPU_BUILD_IMPORT_S if _cpu_build(version) else OTHER_BUILD_IMPORT_S
 
 
@@ -100,16 +135,17 @@ def _cpu_build(version: str) -> bool:
     return not any(requirement.lower().startswith("nvidia-") for requirement in requirements)
 
 
-def record_import_s(seconds: float) -> None:
-    """Keep ``seconds`` as an import time of this interpreter's torch (the last :data:`KEPT_TIMES` stay); a cache
-    that cannot be written is left as it is."""
+def record_import_s(seconds: float, mode: str = "") -> None:
+    """Keep ``seconds`` as an import time of this interpreter's torch, in the foreground (``mode`` ``""``) or
+    the background (:data:`BACKGROUND`); the last :data:`KEPT_TIMES` of each stay, and a cache that cannot be
+    written is left as it is."""
     version = _torch_version()
     if version is None:
         return
     from ._io import atomic_write
 
     measured = _measured()
-    measured[_key(version)] = [*_times(measured, version), round(float(seconds), 3)][-KEPT_TIMES:]
+    measured[_key(version, mode)] = [*_times(measured, version, mode), round(float(seconds), 3)][-KEPT_TIMES:]
     try:
         with atomic_write(_cache_path(), "w") as handle:
             json.dump(measured, handle, indent=1)
@@ -119,14 +155,41 @@ def record_import_s(seconds: float) -> None:
 
 def import_torch():
     """``import torch``, timed where it is the first in this process and the time kept for
-    :func:`torch_import_s` (:func:`record_import_s`); returns the module."""
+    :func:`torch_import_s` (:func:`record_import_s`); returns the module. Where a background import
+    (:func:`import_torch_in_background`) has begun, it waits for that one."""
+    thread = _background.get("thread")
+    if thread is not None:
+        thread.join()
     if "torch" in sys.modules:
         return sys.modules["torch"]
+    return _timed_import()
+
+
+def _timed_import(mode: str = ""):
     start = time.perf_counter()
     import torch
 
-    record_import_s(time.perf_counter() - start)
+    record_import_s(time.perf_counter() - start, mode)
     return torch
 
 
-__all__ = ["CACHE_FILE", "CPU_BUILD_IMPORT_S", "KEPT_TIMES", "OTHER_BUILD_IMPORT_S", "import_torch", "record_import_s", "torch_import_s"]
+def import_torch_in_background() -> None:
+    """Begin ``import torch`` on a daemon thread, once a process and only where torch is not imported yet
+    (module docstring); :func:`import_torch` then waits for it. A failed import is left for the foreground's
+    :func:`import_torch` to raise again."""
+    if "thread" in _background or "torch" in sys.modules:
+        return
+
+    def run():
+        try:
+            _timed_import(BACKGROUND)
+        except Exception:  # noqa: BLE001 - the foreground's import raises it with its own traceback
+            pass
+
+    _background["started"] = time.perf_counter()
+    _background["thread"] = thread = threading.Thread(target=run, name="octcl-import-torch", daemon=True)
+    thread.start()
+
+
+__all__ = ["BACKGROUND", "BACKGROUND_FACTOR", "BACKGROUND_LEFT_MIN_S", "CACHE_FILE", "CPU_BUILD_IMPORT_S", "KEPT_TIMES",
+           "OTHER_BUILD_IMPORT_S", "import_torch", "import_torch_in_background", "record_import_s", "torch_import_s"]

@@ -2,15 +2,19 @@
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import time
 from importlib import metadata
 
 import numpy as np
 import pytest
 
-from octcl.torch_import import (CACHE_FILE, CPU_BUILD_IMPORT_S, KEPT_TIMES, OTHER_BUILD_IMPORT_S, record_import_s,
-                                 torch_import_s)
+from octcl import torch_import
+from octcl._lpips import WEIGHTS_FILENAME, weights_path
+from octcl.torch_import import (BACKGROUND, BACKGROUND_FACTOR, BACKGROUND_LEFT_MIN_S, CACHE_FILE, CPU_BUILD_IMPORT_S,
+                                 KEPT_TIMES, OTHER_BUILD_IMPORT_S, record_import_s, torch_import_s)
 
 
 @pytest.fixture
@@ -71,9 +75,8 @@ def test_a_process_times_its_first_import_for_the_next(tmp_path):
     assert 0 < kept[f"{sys.executable} torch {metadata.version('torch')}"][0] < 60
 
 
-def test_a_budget_leaves_out_what_a_slow_torch_import_would_push_past_it(official_data, tmp_path):
-    """Where torch took 100 s to import before, a 20 s budget on a real-like target runs neither the aim step
-    nor any score (each needs torch) and never imports it; the phantom is written and the process ends in time."""
+def _real_like_levels(official_data):
+    """An official scan's levels with every level above 60 moved to one the scanner never writes."""
     from octcl.host.pipeline.target import read_target, target_scan
     from octcl.host.stage1.ceiling import WRITABLE
     from octcl.host.stage1.levels import target_levels
@@ -82,8 +85,14 @@ def test_a_budget_leaves_out_what_a_slow_torch_import_would_push_past_it(officia
     unwritable = np.flatnonzero(~WRITABLE)
     bright = levels > 60
     levels[bright] = unwritable[np.searchsorted(unwritable, levels[bright]) % unwritable.size]
+    return levels
+
+
+def test_a_budget_leaves_out_what_a_slow_torch_import_would_push_past_it(official_data, tmp_path):
+    """Where torch took 100 s to import before, a 20 s budget on a real-like target runs neither the aim step
+    nor any score (each needs torch) and never imports it; the phantom is written and the process ends in time."""
     target, output = tmp_path / "real_like.npy", tmp_path / "out.txt"
-    np.save(target, levels)
+    np.save(target, _real_like_levels(official_data))
     cache = tmp_path / "cache"
     cache.mkdir()
     (cache / CACHE_FILE).write_text(json.dumps({f"{sys.executable} torch {metadata.version('torch')}": [100.0]}))
@@ -98,3 +107,64 @@ def test_a_budget_leaves_out_what_a_slow_torch_import_would_push_past_it(officia
     imported, score, seconds = json.loads(done.stdout)
     assert not imported and score is None and seconds < 20
     assert output.exists()
+
+
+def test_a_background_import_is_waited_for_and_its_time_kept_apart(tmp_path):
+    """import_torch waits for the thread's import; while it runs the estimate is what is left of the
+    background's expected time (nothing measured: BACKGROUND_FACTOR times the build's default)."""
+    code = ("import sys, threading\n"
+            "from octcl.torch_import import import_torch, import_torch_in_background, torch_import_s\n"
+            "import_torch_in_background(); during = torch_import_s(); torch = import_torch()\n"
+            "print(during, torch_import_s(), hasattr(torch, 'tensor'),\n"
+            "      any(t.name == 'octcl-import-torch' and t.is_alive() for t in threading.enumerate()))\n")
+    environment = {**os.environ, "OCTCL_CACHE_DIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=environment)
+    assert done.returncode == 0, done.stderr
+    during, after, complete, alive = done.stdout.split()
+    defaults = [BACKGROUND_FACTOR * value for value in (CPU_BUILD_IMPORT_S, OTHER_BUILD_IMPORT_S)]
+    assert any(BACKGROUND_LEFT_MIN_S <= float(during) <= value for value in defaults)
+    assert float(after) == 0.0 and complete == "True" and alive == "False"
+    version = metadata.version("torch")
+    kept = json.loads((tmp_path / CACHE_FILE).read_text())
+    assert list(kept) == [f"{sys.executable} torch {version} {BACKGROUND}"]  # not taken for a foreground import
+    assert 0 < kept[f"{sys.executable} torch {version} {BACKGROUND}"][0] < 60
+
+
+def test_a_running_background_import_is_estimated_by_what_is_left_of_its_time(without_torch, monkeypatch):
+    monkeypatch.setattr(metadata, "version", lambda name: "2.13.0+cpu")
+    (without_torch / CACHE_FILE).write_text(json.dumps({f"{sys.executable} torch 2.13.0+cpu background": [3.0],
+                                                        f"{sys.executable} torch 2.13.0+cpu": [1.0]}))
+
+    class Running:
+        @staticmethod
+        def is_alive():
+            return True
+
+    monkeypatch.setattr(torch_import, "_background", {"thread": Running(), "started": time.perf_counter() - 1.0})
+    assert 1.9 < torch_import_s() <= 2.0  # 3 s expected, 1 s gone
+    monkeypatch.setitem(torch_import._background, "started", time.perf_counter() - 10.0)
+    assert torch_import_s() == BACKGROUND_LEFT_MIN_S  # late, but still running
+    monkeypatch.setattr(torch_import, "_background", {})
+    assert torch_import_s() == 1.0  # the foreground's own figure
+
+
+def test_an_invert_run_begins_the_import_where_it_will_need_torch_and_the_budget_allows(official_data, tmp_path):
+    """A real-like target (levels the scanner never writes) needs torch for its aim and score: the run
+    imports it on a thread from its start, unless the import would not end within the budget."""
+    target = tmp_path / "real_like.npy"
+    np.save(target, _real_like_levels(official_data))
+    code = ("import json, sys\n"
+            "from octcl.host.pipeline.invert import invert\n"
+            "from octcl import torch_import\n"
+            f"result = invert({str(target)!r}, sys.argv[1], time_budget_s=float(sys.argv[2]))\n"
+            "print(json.dumps([bool(torch_import._background), result.score is not None]))\n")
+    version = metadata.version("torch")
+    for label, budget, known, expected in (("fast", 60, 1.0, [True, True]), ("slow", 20, 100.0, [False, False])):
+        cache = tmp_path / label
+        cache.mkdir()
+        shutil.copy(weights_path(), cache / WEIGHTS_FILENAME)  # the score needs the LPIPS weights
+        (cache / CACHE_FILE).write_text(json.dumps({f"{sys.executable} torch {version}": [known]}))
+        done = subprocess.run([sys.executable, "-c", code, str(cache / "out.txt"), str(budget)], capture_output=True,
+                              text=True, timeout=180, env={**os.environ, "OCTCL_CACHE_DIR": str(cache)})
+        assert done.returncode == 0, done.stderr
+        assert json.loads(done.stdout) == expected, label

@@ -21,12 +21,17 @@ prelude's ``group_sum``).
 
 Programs are built once per (context, name, defines, precision)
 (:func:`build`, memoised); pyopencl keeps the compiled binaries in its
-on-disk cache, so later runs skip the compiler.
+on-disk cache, so later runs skip the compiler. Builds are serialised
+across a process's threads (:data:`_BUILDING`): a run builds stage 3's
+scanner on a thread while stage 1 builds its own programs
+(:func:`octcl.device.scanner.scanner_in_background`), and Intel's CPU
+runtime ended such a process with exit status 1, and no message, when two
+compiles ran at once (its compiler's option parser is the process's).
 """
 
 from __future__ import annotations
 
-import functools
+import threading
 from importlib import resources
 from pathlib import Path
 
@@ -37,6 +42,9 @@ from .runtime import OpenCLUnavailableError, describe, has_fp64, pyopencl_module
 PRELUDE = "prelude"
 #: Work-items of the reductions' work-groups (a power of two; fewer where the device allows fewer).
 REDUCTION_WORK_GROUP = 64
+
+_BUILDING = threading.Lock()  # held while a program is built or looked up (module docstring)
+_BUILT: dict = {}  # (context, name, defines, double) → program
 
 
 def reduction_work_group(device) -> int:
@@ -72,9 +80,17 @@ def build_options(defines: tuple[tuple[str, object], ...], double: bool) -> list
     return options
 
 
-@functools.lru_cache(maxsize=None)
 def build(context, name: str, defines: tuple[tuple[str, object], ...], double: bool):
-    """Build ``kernels/<name>.cl`` (after the prelude) with ``-D`` defines; checks fp64 when asked for."""
+    """Build ``kernels/<name>.cl`` (after the prelude) with ``-D`` defines, once per process and one build at a
+    time (module docstring); checks fp64 when asked for."""
+    key = (context, name, defines, double)
+    with _BUILDING:
+        if key not in _BUILT:
+            _BUILT[key] = _compiled(context, name, defines, double)
+        return _BUILT[key]
+
+
+def _compiled(context, name: str, defines: tuple[tuple[str, object], ...], double: bool):
     cl = pyopencl_module()
     device = context.devices[0]
     if double and not has_fp64(device):

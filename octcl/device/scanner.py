@@ -27,7 +27,9 @@ kept and refilled.
 from __future__ import annotations
 
 import math
+import threading
 import warnings
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -440,6 +442,38 @@ class ScannerKernels:
         reduced = np.empty(self.count, dtype=self.complex)
         cl.enqueue_copy(self.queue, reduced, gradient)
         return reduced.real.astype(np.float64), reduced.imag.astype(np.float64)
+
+
+def scanner_in_background(config: ScannerConfig = DEFAULT_CONFIG, settings: KernelSettings = KernelSettings()) -> Future:
+    """:class:`ScannerKernels` on octcl's device, made on a thread from now: a future of them.
+
+    Making them builds ``kernels/scanner.cl``: a read of pyopencl's binary
+    cache once it holds the program (0.02 s on two EPYC cores), a compile
+    where it does not, on a machine's first run or after an update (2.3 s
+    with Intel's CPU runtime on two EPYC cores, 5.9 s through NVIDIA's
+    driver on an H200: docs/benchmarks.md). A run that needs them only
+    after stage 1 starts them at its beginning, so that a compile overlaps
+    stage 1 (pyopencl releases the interpreter while the compiler runs).
+    The device and its context are resolved here, before the thread starts,
+    so that the thread and its caller share one context; an error making
+    them (no OpenCL device, a failed build) is the future's.
+    """
+    future: Future = Future()
+    try:
+        device = select_device(None)
+        context_for(device)
+    except Exception as exc:  # noqa: BLE001 - the caller meets it where it asks for the kernels
+        future.set_exception(exc)
+        return future
+
+    def make():
+        try:
+            future.set_result(ScannerKernels(config, settings, device))
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller with its traceback
+            future.set_exception(exc)
+
+    threading.Thread(target=make, name="octcl-scanner-build", daemon=True).start()
+    return future
 
 
 def contribution_ranges(x_um: np.ndarray, y_um: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG) -> np.ndarray:

@@ -7,13 +7,15 @@ kernel file, not of the prelude before it.
 """
 
 import re
+import threading
+import time
 from pathlib import Path
 
 import pytest
 from conftest import implementation_device
 
 from octcl.config import DEFAULT_CONFIG
-from octcl.device import depth_order, programs
+from octcl.device import depth_order, programs, runtime
 from octcl.device.runtime import OpenCLUnavailableError, context_for
 from octcl.device.scanner import KernelSettings
 from octcl.device.scanner import program_defines as scanner_defines
@@ -116,3 +118,38 @@ def test_a_build_error_names_the_line_of_the_kernel_file(implementation, monkeyp
         programs.build(context, "broken", (), False)
     assert re.search(r"\b4:12: (error: )?use of undeclared identifier 'undefined_name'", str(error.value)), \
         str(error.value)
+
+
+def test_builds_from_threads_run_one_at_a_time_and_once_per_program(monkeypatch):
+    """A run builds stage 3's scanner on a thread while stage 1 builds its programs: one compile at a time (Intel's
+    CPU runtime ended the process when two ran at once), and a program two threads ask for is compiled once."""
+    running, most, compiled, lock = [0], [0], [], threading.Lock()
+
+    def slow_build(context, source, options, device):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.05)
+        with lock:
+            running[0] -= 1
+            compiled.append(source)
+        return object()
+
+    monkeypatch.setattr(runtime, "quiet_build", slow_build)
+
+    class Context:
+        devices = [None]
+
+    context, built = Context(), {}
+    names = ["scanner", "scanner", "display_loss", "level_fit"]
+
+    def ask(index):
+        built[index] = programs.build(context, names[index], (), False)
+
+    threads = [threading.Thread(target=ask, args=(index,)) for index in range(len(names))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert most[0] == 1 and len(compiled) == 3
+    assert built[0] is built[1] and built[0] is not built[2]

@@ -519,3 +519,30 @@ def test_kernels_under_oclgrind_report_nothing_and_match_the_reference(oclgrind_
     log = OCLGRIND_LOG.read_bytes()[start:].decode(errors="replace") if OCLGRIND_LOG.exists() else ""
     reports = oclgrind_reports(log + capfd.readouterr().err)
     assert not reports, "Oclgrind reports:\n" + "\n\n".join(reports)
+
+
+def test_kernels_made_on_a_thread_render_as_those_made_here():
+    """scanner_in_background: the same kernels on octcl's device, made beside the caller (a run's stage 1)."""
+    from octcl.device.scanner import scanner_in_background
+
+    future = scanner_in_background(NARROW)
+    phantom = Phantom([12.3, -40.0], [1.0, 0.0], [321.0, 640.0], [5.0, 0.5])
+    ours, theirs = future.result(timeout=120), ScannerKernels(NARROW)
+    assert ours.context is theirs.context  # one context per device and process: buffers pass between them
+    for kernels in (ours, theirs):
+        kernels.set_phantom(phantom.x_um, phantom.y_um, phantom.z_um, np.log(phantom.energy_pct))
+    np.testing.assert_array_equal(ours.forward(), theirs.forward())
+
+
+def test_an_error_making_them_on_a_thread_is_the_futures(monkeypatch):
+    from octcl.device import scanner
+    from octcl.device.runtime import OpenCLUnavailableError
+
+    with pytest.raises(ValueError, match="power-of-two"):  # raised on the thread
+        scanner.scanner_in_background(ScannerConfig(depth_pixels=250)).result(timeout=120)
+
+    def no_device(choice=None):
+        raise OpenCLUnavailableError("no OpenCL device")
+
+    monkeypatch.setattr(scanner, "select_device", no_device)  # raised before the thread starts
+    assert isinstance(scanner.scanner_in_background(NARROW).exception(timeout=10), OpenCLUnavailableError)
