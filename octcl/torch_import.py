@@ -28,10 +28,13 @@ part (PyPI's own wheels) is a CUDA build where it requires NVIDIA's
 
 A run that will need torch can start its import at its beginning, on a
 thread (:func:`import_torch_in_background`), while stage 1 works on the
-device: the import waits on the disk and the interpreter, the stage on the
-OpenCL device, so on a GPU the two overlap almost wholly. On two CPU cores
-they share the cores (the OpenCL CPU runtime uses both), and an import
-there takes longer: its times are kept apart (:data:`BACKGROUND`), and
+device. The two still share the interpreter, which the import holds for
+much of its time (on an H200 machine octcl's start-up took 0.7 s longer
+beside it, and orange.png's default run went from 7.37 s to 6.86 s), and
+on two CPU cores they share the cores too (the OpenCL CPU runtime uses
+both; the median default run there went from 6.22 s to 5.56 s:
+docs/benchmarks.md, "Work beside stage 1"). An import beside a run takes
+longer: its times are kept apart (:data:`BACKGROUND`), and
 :func:`torch_import_s` is what is left of such an import's expected time
 (at least :data:`BACKGROUND_LEFT_MIN_S` while it runs).
 """

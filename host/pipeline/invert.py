@@ -859,8 +859,9 @@ class _Run:
 
         Measured on two EPYC cores (``scripts/bench_versions.py``, docs/benchmarks.md): the default run's median
         wall time over orange.png and six plainly quantised skin renderings fell from 6.22 s to 5.56 s, with the
-        same scores; the import itself took 1.5–1.6 s beside stage 1 against 1.0–1.2 s alone. On a GPU machine
-        torch's import (2.9–5.3 s on an H200's) and stage 1 (0.3 s on the device) share only the interpreter.
+        same scores; the import itself took 1.5–1.6 s beside stage 1 against 1.0–1.2 s alone. On an H200 machine,
+        where torch's import takes 2.9–5.3 s, orange.png's median run went from 7.37 s to 6.86 s, and the first
+        run on a cold cache no longer compiles the scanner (5.9 s there) after the write.
         """
         from octcl.device.scanner import scanner_in_background
 
