@@ -68,7 +68,6 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     failures raise, so that Dask retries the scan.
     """
     from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
-    from octcl.render import render
     from octcl.tissue import attenuation_map, transmission_map
     from octcl.torch_import import import_torch
 
@@ -95,16 +94,19 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
         cpu_s = time.process_time() - cpu_started
         phantom = phantom_path.read_bytes()
         report = json.loads(report_path.read_text(encoding="utf-8"))
-        written = Phantom.load(phantom_path, config, y_limit_um=CONTRACT_Y_LIMIT_UM)
-        rendering = render(written, config)
+        attenuation = result.attenuation_per_mm
+        if options.get("regime") == "tissue" and attenuation is None:  # the budget left no time for it in invert
+            written = Phantom.load(phantom_path, config, y_limit_um=CONTRACT_Y_LIMIT_UM)
+            attenuation = attenuation_map(transmission_map(written, config), config)
     report["target"] = name
     score = "left out (time budget)" if result.score is None else f"{result.score:.5f}"
     title = f"{name}: score {score} after {result.seconds['total']:.0f} s"
-    pictures = {"panel": comparison_panel(target, rendering.levels, title),
+    # The written phantom's rendering and attenuation map are invert's own (InvertResult.levels,
+    # .attenuation_per_mm): rendering the file again took a render, and the map a transmission map (about 1 s).
+    pictures = {"panel": comparison_panel(target, result.levels, title),
                 "plot": score_plot({name: report["trace"]}, name)}
-    if options.get("regime") == "tissue":
-        pictures["tissue"] = tissue_panel(target, attenuation_map(transmission_map(written, config), config),
-                                          f"{name}: attenuation")
+    if attenuation is not None:
+        pictures["tissue"] = tissue_panel(target, attenuation, f"{name}: attenuation")
     return {"name": name, "phantom": phantom, "report": report, **pictures,
             "cpu_s": cpu_s, "wall_s": time.monotonic() - started, "worker": f"{platform.node()}:{os.getpid()}"}
 

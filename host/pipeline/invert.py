@@ -241,6 +241,11 @@ class InvertResult:
         The tissue regime's phantom as tissue (:func:`octcl.tissue.tissue_figures` against the target: energy
         percentiles, shadow at the bottom of the visible tissue, band densities, median attenuation); None in the
         other regimes, and where a time budget left no time for them (:data:`TISSUE_FIGURES_S`).
+    levels : ndarray of uint8, (Nz, Nx)
+        The written phantom's rendering, as its score saw it (not in :meth:`as_dict`).
+    attenuation_per_mm : ndarray or None, (Nz, Nx)
+        The written phantom's attenuation map, µ in mm⁻¹ from its own transmission
+        (:func:`octcl.tissue.attenuation_map`), where ``tissue`` is given; None otherwise (not in :meth:`as_dict`).
     """
 
     target: str
@@ -267,9 +272,13 @@ class InvertResult:
     exact_share: float
     avoidable_share: float
     tissue: dict | None = None
+    levels: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    attenuation_per_mm: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The result as JSON takes it: every attribute but the two maps."""
+        contents = dataclasses.asdict(dataclasses.replace(self, levels=None, attenuation_per_mm=None))
+        return {key: value for key, value in contents.items() if key not in ("levels", "attenuation_per_mm")}
 
 
 @dataclass(frozen=True)
@@ -927,12 +936,17 @@ class _Run:
         """The exact score of one of the ceiling's images; None where it would not end by :attr:`exit_by`."""
         return self.exact_score(image)["mean"] if self.fits_before_exit(self.exact_score.cost_s(image)) else None
 
-    def tissue_figures(self, phantom, levels) -> dict | None:
-        """:func:`octcl.tissue.tissue_figures` of the written phantom against the target's levels; None where they
-        would not end by :attr:`exit_by` (:data:`TISSUE_FIGURES_S`)."""
-        from octcl.tissue import tissue_figures
+    def tissue_figures(self, phantom, levels) -> tuple[dict | None, np.ndarray | None]:
+        """:func:`octcl.tissue.tissue_figures` of the written phantom against the target's levels, and its
+        attenuation map, from one transmission map; None for both where they would not end by :attr:`exit_by`
+        (:data:`TISSUE_FIGURES_S`)."""
+        from octcl.tissue import attenuation_map, tissue_figures, transmission_map
 
-        return tissue_figures(phantom, levels, self.config) if self.fits_before_exit(TISSUE_FIGURES_S) else None
+        if not self.fits_before_exit(TISSUE_FIGURES_S):
+            return None, None
+        transmission = transmission_map(phantom, self.config)
+        return (tissue_figures(phantom, levels, self.config, transmission),
+                attenuation_map(transmission, self.config))
 
     def outcome(self, name: str, first: _Start, result) -> tuple[InvertResult, dict]:
         """The result and the report's settings, after the last write.
@@ -953,6 +967,7 @@ class _Run:
         self.tell("done", result.iterations, plan.schedule.total_iterations, done=True)
         levels, rendered = self.exact_score.levels, result.levels
         ceiling = measure_ceiling(levels, self.ceiling_score)
+        tissue, attenuation = self.tissue_figures(result.phantom, levels) if plan.regime == "tissue" else (None, None)
         outcome = InvertResult(
             target=name, output=str(self.output_path),
             score=None if result.components is None else result.components["mean"], components=result.components,
@@ -966,7 +981,7 @@ class _Run:
             reproducible=first.clock_steps == 0 and not result.stopped_by_deadline,
             ceiling=ceiling.as_dict(), exact_share=float(np.mean(rendered == levels)),
             avoidable_share=float(np.mean(WRITABLE[levels] & (rendered != levels))),
-            tissue=self.tissue_figures(result.phantom, levels) if plan.regime == "tissue" else None)
+            tissue=tissue, levels=rendered, attenuation_per_mm=attenuation)
         settings = {"time_budget_s": self.time_budget_s, "field_budget_s": self.field_budget,
                     "field_iterations_planned": plan.field_iterations, "field_threads": first.threads,
                     "field_backend": plan.backend, "field_clock_steps": first.clock_steps,

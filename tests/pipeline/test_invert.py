@@ -248,6 +248,13 @@ def test_the_tissue_regime_writes_a_phantom_at_tissue_scale_and_says_what_it_is(
     assert decode["twin_iterations"] <= TWIN_ITERATIONS and decode["twin_identical"] > 0.9
     assert report["seconds"]["twin"] > 0
     assert result.reproduce.startswith("--regime tissue")
+    # The maps handed out (a batch draws its pictures from them) are the written file's own.
+    from octcl.render import render
+    from octcl.tissue import attenuation_map, transmission_map
+
+    np.testing.assert_array_equal(result.levels, render(phantom).levels)
+    np.testing.assert_allclose(result.attenuation_per_mm, attenuation_map(transmission_map(phantom)), rtol=1e-6)
+    assert "levels" not in result.as_dict() and "attenuation_per_mm" not in result.as_dict()
 
 
 def test_the_linear_regime_writes_its_phantom_before_importing_torch(layers_path, tmp_path):
