@@ -155,6 +155,11 @@ FIXED_THREADS = 1
 #: :data:`FINAL_RESERVE_FRACTION` of itself instead (1.5 s of 10 s).
 FINAL_RESERVE_S = 7.0
 FINAL_RESERVE_FRACTION = 0.15
+#: Seconds before :attr:`_Run.exit_by` below which a run does not import torch on a thread beside stage 1: under a
+#: short budget the clock sets stage 1's steps, and the import slowed them (orange.png on two EPYC cores:
+#: ``--time-budget 3`` ended at 5.34 and 3.27 s, ``--time-budget 5`` at 5.35 s with its score left out, against
+#: 2.76 s and 4.24–4.40 s without the thread).
+PREFETCH_TORCH_MIN_S = 20.0
 #: Seconds a process needs after :func:`invert` returns: the report, the summary, the interpreter's exit
 #: (deadline mode leaves out a ceiling score that would eat into them).
 EXIT_RESERVE_S = 0.25
@@ -862,7 +867,8 @@ class _Run:
     def prefetch(self):
         """Begin what the run needs after stage 1 on threads beside it: stage 3's scanner kernels (their future,
         :func:`octcl.device.scanner.scanner_in_background`) and, where the run will need it, torch's import
-        (:func:`octcl.torch_import.import_torch_in_background`), unless it would not end by :attr:`exit_by`. A grey
+        (:func:`octcl.torch_import.import_torch_in_background`), unless less than :data:`PREFETCH_TORCH_MIN_S` are left
+        before :attr:`exit_by`. A grey
         scan the scanner could have written, in the linear regime, has nothing to aim and is scored without torch
         (:class:`_LazyExactScore`).
 
@@ -876,7 +882,7 @@ class _Run:
 
         exact = self.exact_score
         needed = self.plan.regime != "linear" or not (exact.grey and WRITABLE[exact.levels].all())
-        if needed and (self.exit_by is None or time.monotonic() + torch_import_s() <= self.exit_by):
+        if needed and (self.exit_by is None or time.monotonic() + PREFETCH_TORCH_MIN_S <= self.exit_by):
             import_torch_in_background()
         return scanner_in_background(self.config)
 
