@@ -141,6 +141,24 @@ def official_data() -> Path:
     return path
 
 
+@pytest.fixture
+def real_like_target(official_data, tmp_path) -> Path:
+    """A real-like target: the official Layers_A scan's levels (``.npy``) with every level above 60 moved to
+    one the scanner never writes (:data:`octcl.host.stage1.ceiling.WRITABLE`), so that a run has something
+    to aim and needs torch for its score."""
+    from octcl.host.pipeline.target import read_target, target_scan
+    from octcl.host.stage1.ceiling import WRITABLE
+    from octcl.host.stage1.levels import target_levels
+
+    levels = target_levels(target_scan(read_target(official_data / "Scan_Exp2_Layers_A.png")))
+    unwritable = np.flatnonzero(~WRITABLE)
+    bright = levels > 60
+    levels[bright] = unwritable[np.searchsorted(unwritable, levels[bright]) % unwritable.size]
+    path = tmp_path / "real_like.npy"
+    np.save(path, levels)
+    return path
+
+
 @pytest.fixture(scope="session")
 def lpips_weights() -> Path:
     """The cached LPIPS weights; fails (not skips) with the fetch hint when missing."""

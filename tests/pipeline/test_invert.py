@@ -205,22 +205,12 @@ def test_budget_runs_from_the_start_it_is_given(layers_path, tmp_path):
     assert 2.0 < result.seconds["written"] <= result.seconds["total"]
 
 
-def test_a_budget_with_no_time_left_to_score_writes_its_phantom_and_leaves_the_score_out(layers_path, tmp_path):
+def test_a_budget_with_no_time_left_to_score_writes_its_phantom_and_leaves_the_score_out(real_like_target, tmp_path):
     """A real-like target (levels the scanner never writes) with 1 s of its budget left: the phantom is written,
     the score (torch, the network, a score: more than that second) is left out, the ceiling's scores too, and the
     report says so. (When the process ends is measured by scripts/bench_invert.py, docs/benchmarks.md.)"""
-    from octcl.host.stage1.ceiling import WRITABLE
-    from octcl.host.stage1.levels import target_levels
-    from octcl.host.pipeline.target import read_target, target_scan
-
-    levels = target_levels(target_scan(read_target(layers_path)))
-    unwritable = np.flatnonzero(~WRITABLE)
-    bright = levels > 60
-    levels[bright] = unwritable[np.searchsorted(unwritable, levels[bright]) % unwritable.size]
-    target = tmp_path / "real_like.npy"
-    np.save(target, levels)
     budget, started = 3.0, time.monotonic() - 2.0
-    result = invert(target, tmp_path / "out.txt", time_budget_s=budget, report_path=tmp_path / "r.json",
+    result = invert(real_like_target, tmp_path / "out.txt", time_budget_s=budget, report_path=tmp_path / "r.json",
                     started=started)
     assert result.score is None and result.components is None and result.initial_score is None
     assert result.ceiling["nearest_score"] is None and result.ceiling["diffused_score"] is None
