@@ -9,29 +9,34 @@ loss's differentiable twins of the score's terms through the
 straight-through quantiser (:class:`octcl.host.stage3.loss.DisplayLoss` with
 :data:`SCORE_WEIGHTS`).
 
-A round: with g = ∂loss/∂D at the display D(a) of the aim a (each level at
-the centre of its display interval), the change of loss from moving pixel
-p to its other side a'_p is predicted as g_p·(D(a'_p) − D(a_p)); the
-``batch`` pixels of most negative prediction, each more than
-:data:`SPACING_PX` from the others taken, move together, and the move
-is kept only if the exact score of the new levels is higher; a moved pixel
-is not moved again. The score is not additive over pixels (MS-SSIM and
-LPIPS see neighbourhoods, and the speckle-contrast maps the local spread),
-so the prediction holds for a few pixels at a time, and for pixels apart:
-on orange.png the first 16 moved 8.0e−6 nearest the top of the ranking,
-10.5e−6 at least 16 pixels apart; on a plainly quantised skin rendering
-(seed 5) 2.9e−6 and 7.6e−6 (spacings of 0, 4, 8, 16 and 32 pixels
-measured; 32 lost on orange). The search starts at
-:data:`FIRST_BATCH`, a kept batch stays the same size and a rejected one
-halves, and the search stops after :data:`PATIENCE` rejected rounds in a
-row. On orange.png four rounds took the score from the error-diffused
-image's 0.999895 to 0.999906 (``scripts/bench_invert.py``,
-docs/benchmarks.md, 0.6.0): the first two rounds' moves (16 pixels each)
-gained 8.0e−6 and 3.2e−6, and the rounds after them, of 16, 8, 4 and 2
-pixels, were all rejected. On two plainly quantised skin renderings every
-round of 16 down to 1 pixel was rejected but a sixth (a single pixel,
-+3.9e−7): a round after two rejections gained at most that, and costs an
-exact score (0.2 s on two cores; ``scripts/bench_aim.py --rounds 6``).
+A round: with g = ∂loss/∂D at the display D(a₀) of the search's first aim
+a₀ (each level at the centre of its display interval), the change of loss
+from moving pixel p to its other side a'_p is predicted as
+g_p·(D(a'_p) − D(a₀_p)); the ``batch`` pixels of most negative prediction,
+each more than :data:`SPACING_PX` from the others taken and from every
+pixel moved before, move together, and the move is kept only if the exact
+score of the new levels is higher; a moved pixel is not moved again. The
+score is not additive over pixels (MS-SSIM and LPIPS see neighbourhoods,
+and the speckle-contrast maps the local spread), so the prediction holds
+for a few pixels at a time, and for pixels apart: on orange.png the first
+16 moved 8.0e−6 nearest the top of the ranking, 10.5e−6 at least 16 pixels
+apart; on a plainly quantised skin rendering (seed 5) 2.9e−6 and 7.6e−6
+(spacings of 0, 4, 8, 16 and 32 pixels measured; 32 lost on orange). The
+search starts at :data:`FIRST_BATCH`, a kept batch stays the same size and
+a rejected one halves, and the search stops after :data:`PATIENCE`
+rejected rounds in a row.
+
+One gradient serves the whole search. A gradient at each kept aim (octcl
+0.8.0) cost 0.75–0.8 s a kept round on two cores, more than the round's
+exact score (0.45 s), and bought little: pixels away from those moved keep
+their prediction, and those near them are left out. Measured end to end
+(``scripts/bench_versions.py``, docs/benchmarks.md, "The aim's one
+gradient", two first-generation EPYC cores): orange.png 14.08 → 12.85 s
+of wall time at 0.9999070 → 0.9999061; a plainly quantised skin rendering
+(seed 5) 16.23 → 14.43 s at 0.9998879 → 0.9998862; on five other skin
+renderings every round was rejected either way, same scores. A search that
+gains nothing costs the loss's construction (0.3 s there), its gradient
+(0.8 s) and two exact scores (0.45 s each).
 
 The rounds judge levels only: the field follows the aim the search ends
 at once, after the last round (:meth:`octcl.host.stage1.solve.FieldSolve.reach`),
@@ -82,36 +87,33 @@ class AimSearch:
     score: object
     batch: int = FIRST_BATCH
     rejections: int = 0
-    _loss: object = None
 
     def __post_init__(self):
         self.movable = ~WRITABLE[self.levels]  # only the target's unwritable pixels move
-        self._settled = np.zeros(self.levels.size, bool)  # pixels moved by a kept move
-        self._change = None  # (aim, predicted loss change per pixel) of the last gradient
+        self._blocked = np.zeros(self.levels.shape, bool)  # within SPACING_PX of a pixel a kept move moved
+        self._change = None  # the predicted loss change per pixel (flat), from the one gradient
 
     @property
     def done(self) -> bool:
         return not self.movable.any() or self.rejections >= PATIENCE
 
-    def _predicted_change(self, aim: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """g_p·(D(a'_p) − D(a_p)) for every pixel (0 where it may not move), and a' (module docstring)."""
-        other = (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)  # L ± 1 ↔ L ∓ 1
-        if self._change is None or not np.array_equal(self._change[0], aim):
-            if self._loss is None:
-                from ..stage3.loss import DisplayLoss, scan_of_levels
+    def _predicted_change(self, aim: np.ndarray) -> np.ndarray:
+        """g_p·(D(a'_p) − D(a_p)) for every pixel at the first aim this is asked for, 0 where it may not move
+        (module docstring): computed once."""
+        if self._change is None:
+            from ..stage3.loss import DisplayLoss, scan_of_levels
 
-                self._loss = DisplayLoss(scan_of_levels(self.levels), SCORE_WEIGHTS)
+            other = (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)  # L ± 1 ↔ L ∓ 1
             display_of = display_of_level()
-            gradient = self._loss(display_of[aim]).grad_display
-            change = np.where(self.movable, gradient * (display_of[other] - display_of[aim]), 0.0).ravel()
-            self._change = (aim.copy(), change)
-        return self._change[1], other
+            gradient = DisplayLoss(scan_of_levels(self.levels), SCORE_WEIGHTS)(display_of[aim]).grad_display
+            self._change = np.where(self.movable, gradient * (display_of[other] - display_of[aim]), 0.0).ravel()
+        return self._change
 
     def proposal(self, aim: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``aim`` with up to ``batch`` pixels on their other side, and their flat indices: in order of most
-        negative predicted change, each more than :data:`SPACING_PX` from those taken before it."""
-        change, other = self._predicted_change(aim)
-        change = np.where(self._settled, 0.0, change)
+        negative predicted change, each more than :data:`SPACING_PX` from those taken before it and from every
+        pixel a kept move moved."""
+        change = np.where(self._blocked.ravel(), 0.0, self._predicted_change(aim))
         order = np.argsort(change, kind="stable")
         order = order[change[order] < 0]
         rows, columns = np.divmod(order, aim.shape[1])
@@ -122,6 +124,7 @@ class AimSearch:
             if all(max(abs(rows[index] - rows[t]), abs(columns[index] - columns[t])) > SPACING_PX for t in taken):
                 taken.append(index)
         picks = order[taken]
+        other = (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)
         proposed = aim.copy()
         proposed.flat[picks] = other.flat[picks]
         return proposed, picks
@@ -138,7 +141,10 @@ class AimSearch:
         proposed_score = float(self.score(proposed))
         if proposed_score > aim_score:
             self.rejections = 0
-            self._settled[picks] = True  # a moved pixel is decided: the next gradient would often move it back
+            # A moved pixel is decided, and the gradient no longer predicts its neighbours' moves.
+            for row, column in zip(*np.divmod(picks, aim.shape[1])):
+                self._blocked[max(0, row - SPACING_PX):row + SPACING_PX + 1,
+                              max(0, column - SPACING_PX):column + SPACING_PX + 1] = True
             return proposed, proposed_score
         self.rejections += 1
         self.batch = max(1, self.batch // 2)

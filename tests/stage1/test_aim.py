@@ -43,9 +43,32 @@ def test_a_move_that_gains_is_kept(target):
     rows, columns = np.nonzero(changed)  # pixels a round moves are apart: their effects on the score add up
     apart = np.maximum(abs(rows[:, None] - rows[None]), abs(columns[:, None] - columns[None]))
     assert (apart[~np.eye(rows.size, dtype=bool)] > SPACING_PX).all()
-    # A moved pixel is decided: the next move leaves it where it is.
+    # A moved pixel is decided: the next move leaves it and its neighbourhood where they are (the one gradient
+    # no longer predicts what moving them would do).
     again, _ = search.step(moved, score)
     assert np.array_equal(again[changed], moved[changed]) and not np.array_equal(again, moved)
+    later_rows, later_columns = np.nonzero(again != moved)
+    apart = np.maximum(abs(later_rows[:, None] - rows[None]), abs(later_columns[:, None] - columns[None]))
+    assert (apart > SPACING_PX).all()
+
+
+def test_one_gradient_serves_the_whole_search(target, monkeypatch):
+    from octcl.host.stage3 import loss
+
+    built = []
+
+    class Counted(loss.DisplayLoss):
+        def __call__(self, display, lpips="compute"):
+            built.append(display)
+            return super().__call__(display, lpips)
+
+    monkeypatch.setattr(loss, "DisplayLoss", Counted)
+    scores = iter([2.0, 1.0, 3.0, 0.0, 0.0])  # kept, rejected, kept, then rejected until it stops
+    search = AimSearch(target, lambda levels: next(scores))
+    aim, score = error_diffused(target), 1.0
+    while not search.done:
+        aim, score = search.step(aim, score)
+    assert score == 3.0 and len(built) == 1
 
 
 def test_a_move_that_does_not_gain_is_refused(target):
