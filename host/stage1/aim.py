@@ -51,10 +51,12 @@ costs nothing there.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from ...torch_import import torch_import_s
 from .ceiling import WRITABLE
 from .levels import display_of_level
 from ..stage3.schedule import LossWeights
@@ -69,6 +71,29 @@ FIRST_BATCH = 16
 SPACING_PX = 16
 #: Rejected rounds in a row after which a search stops (module docstring).
 PATIENCE = 2
+#: Seconds of a search's first round beyond torch's import (:func:`octcl.torch_import.torch_import_s`,
+#: known per machine), before it has a pace: the loss's LPIPS network and target maps, a gradient and an exact
+#: score (2–3 s on two cores with the import's 1.0–1.2 s).
+AIM_FIRST_ROUND_S = 1.5
+
+
+@dataclass
+class AimRounds:
+    """What :meth:`AimSearch.rounds` did.
+
+    Attributes
+    ----------
+    kept : list of ndarray of uint8
+        The aims the rounds kept, in order, the first the aim they started from.
+    taken : int
+        Rounds run.
+    clock_steps : int
+        1 where the deadline left rounds out, else 0.
+    """
+
+    kept: list
+    taken: int
+    clock_steps: int
 
 
 @dataclass
@@ -150,5 +175,30 @@ class AimSearch:
         self.batch = max(1, self.batch // 2)
         return aim, aim_score
 
+    def rounds(self, aim: np.ndarray, rounds: int, deadline: float | None = None, progress=None) -> AimRounds:
+        """Up to ``rounds`` rounds from ``aim`` until the search is done.
 
-__all__ = ["AimSearch", "FIRST_BATCH", "PATIENCE", "SCORE_WEIGHTS", "SPACING_PX"]
+        With a ``deadline`` (:func:`time.perf_counter`), a round starts only
+        while it would end by then at the rounds' measured pace (the first:
+        torch's import where it is still to come and
+        :data:`AIM_FIRST_ROUND_S`). ``progress(taken, rounds)`` after each.
+        """
+        start, kept, aim_score, taken, clock_steps = time.perf_counter(), [aim], None, 0, 0
+        while taken < rounds and not self.done:
+            now = time.perf_counter()
+            pace = (now - start) / taken if taken else torch_import_s() + AIM_FIRST_ROUND_S
+            if deadline is not None and now + pace > deadline:
+                clock_steps = 1
+                break
+            if aim_score is None:
+                aim_score = float(self.score(aim))
+            aimed, aim_score = self.step(kept[-1], aim_score)
+            if aimed is not kept[-1]:
+                kept.append(aimed)
+            taken += 1
+            if progress is not None:
+                progress(taken, rounds)
+        return AimRounds(kept, taken, clock_steps)
+
+
+__all__ = ["AIM_FIRST_ROUND_S", "AimRounds", "AimSearch", "FIRST_BATCH", "PATIENCE", "SCORE_WEIGHTS", "SPACING_PX"]

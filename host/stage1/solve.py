@@ -48,7 +48,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...render import Rendering
-from ...torch_import import torch_import_s
 from .aim import AimSearch
 from .backend import Backend
 from .display import fit_field
@@ -62,10 +61,6 @@ from .projections import regularised_start, retrieve_field
 PROJECTION_SHARE = 0.5
 #: Each step's share of the time left when it starts, unless the step says otherwise (module docstring).
 DEFAULT_SHARES = {"display": 0.5, "project": PROJECTION_SHARE, "hinge": 1.0, "aim": 0.7}
-#: Seconds of the aim step's first round beyond torch's import (:func:`octcl.torch_import.torch_import_s`,
-#: known per machine), before it has a pace: the loss's LPIPS network and target maps, a gradient and an exact
-#: score (2–3 s on two cores with the import's 1.0–1.2 s).
-AIM_FIRST_ROUND_S = 1.5
 #: Rounds of the default schedules' aim step (:func:`default_schedules`).
 DEFAULT_AIM_ROUNDS = 4
 #: Projections, then hinge iterations at most, for the field to follow the aim step's moves (a few tens of
@@ -203,6 +198,9 @@ class FieldSolve:
     score : callable, optional
         ``score(levels) -> float``, the exact score against the target: the
         ``aim`` step's judge (:class:`octcl.host.stage1.aim.AimSearch`).
+    aim_search : AimSearch, optional
+        The ``aim`` step's search; by default a new
+        :class:`~octcl.host.stage1.aim.AimSearch` of ``levels`` and ``score``.
 
     Attributes
     ----------
@@ -316,39 +314,28 @@ def _aim_step(solve: FieldSolve, rounds: int, budget_s, progress):
     follows the last aim kept (:meth:`FieldSolve.reach`; an earlier one where it cannot).
 
     Nothing to do (and no torch) for a target without unwritable levels.
-    Under a budget a round starts only while the rounds so far, at their
-    measured pace (the first with the loss's construction, an estimate of
-    torch's import where it is still to come and :data:`AIM_FIRST_ROUND_S` before it), and the field's reach
-    (:data:`AIM_REACH_S`) end within it.
+    Under a budget a round starts only while it, at the rounds' measured
+    pace (:meth:`~octcl.host.stage1.aim.AimSearch.rounds`), and the field's reach
+    (:data:`AIM_REACH_S`) end within it. The rounds judge levels only, but
+    they run here, after the field steps, not beside them on a thread: on
+    two cores that made the default run 1–2 s slower (docs/benchmarks.md,
+    "The aim's rounds beside the field steps: measured, not kept").
     """
     if solve.score is None:
         raise ValueError("the aim step needs the exact score (FieldSolve's score)")
     if solve.aim_search is None:
         solve.aim_search = AimSearch(solve.levels, solve.score)
-    search, start, taken, clock_steps = solve.aim_search, time.perf_counter(), 0, 0
-    if search.done or solve.best_identical < 1.0:  # nothing to move, or no field at its aim to start from
+    if solve.aim_search.done or solve.best_identical < 1.0:  # nothing to move, or no field at its aim
         return solve.field, 0, 0
+    deadline = None if budget_s is None else time.perf_counter() + budget_s - AIM_REACH_S
+    done = solve.aim_search.rounds(solve.aim, rounds, deadline, progress)
     solve.field = solve.best_field
-    kept, aim_score = [solve.aim], None  # the aims the rounds kept, the first the field's own
-    while taken < rounds and not search.done:
-        spent = time.perf_counter() - start
-        pace = spent / taken if taken else torch_import_s() + AIM_FIRST_ROUND_S
-        if budget_s is not None and spent + pace + AIM_REACH_S > budget_s:
-            clock_steps = 1
-            break
-        if aim_score is None:
-            aim_score = float(solve.score(solve.aim))
-        aimed, aim_score = search.step(kept[-1], aim_score)
-        if aimed is not kept[-1]:
-            kept.append(aimed)
-        taken += 1
-        progress(taken, rounds)
-    for aimed in reversed(kept[1:]):
+    for aimed in reversed(done.kept[1:]):
         field = solve.reach(aimed, solve.field)
         if field is not None:
             solve.aim, solve.field = aimed, field
             break
-    return solve.field, taken, clock_steps
+    return solve.field, done.taken, done.clock_steps
 
 
 #: The steps by name: ``function(solve, iterations, budget_s, progress) -> (field, iterations taken, clock steps)``.
@@ -365,5 +352,5 @@ def default_schedules(display_iterations: int) -> tuple:
                  for length in START_LENGTHS)
 
 
-__all__ = ["AIM_FIRST_ROUND_S", "AIM_HINGE_ITERATIONS", "AIM_PROJECTIONS", "AIM_REACH_S", "DEFAULT_SHARES", "PROJECTION_SHARE", "FieldSchedule", "FieldSolve", "FieldStep",
+__all__ = ["AIM_HINGE_ITERATIONS", "AIM_PROJECTIONS", "AIM_REACH_S", "DEFAULT_SHARES", "PROJECTION_SHARE", "FieldSchedule", "FieldSolve", "FieldStep",
            "STEPS", "StepRecord", "aim", "default_schedules", "display", "hinge", "project"]

@@ -48,6 +48,8 @@ DISPLAY_ITERATIONS = 150
 #: per-line energy spread 0.63–1.52 times the median line's (5–95 %) after 200, where the field it came from
 #: spread 0.57–1.98 (``scripts/check_tissue_decode.py``, docs/benchmarks.md, "The decode's field").
 TWIN_ITERATIONS = 200
+
+
 @dataclass
 class LinearStart:
     """Result of :func:`linear_start`.

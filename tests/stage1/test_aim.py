@@ -98,3 +98,22 @@ def test_a_kept_move_starts_the_patience_again(target):
         aim, score = search.step(aim, score)
         rounds += 1
     assert rounds == 1 + 1 + PATIENCE and score == 2.0
+
+
+def test_rounds_run_until_the_search_is_done_and_keep_each_gain(target):
+    scores = iter([1.0, 2.0, 0.0, 0.0])  # the start's score, kept, then rejected until it stops
+    search = AimSearch(target, lambda levels: next(scores))
+    start = error_diffused(target)
+    done = search.rounds(start, rounds=10)
+    assert done.taken == 1 + PATIENCE and done.clock_steps == 0
+    assert len(done.kept) == 2 and done.kept[0] is start and not np.array_equal(done.kept[1], start)
+
+
+def test_a_deadline_the_first_round_cannot_meet_leaves_the_rounds_out(target):
+    import time
+
+    def no_score(_):
+        raise AssertionError("no round: nothing to score")
+
+    done = AimSearch(target, no_score).rounds(error_diffused(target), rounds=4, deadline=time.perf_counter())
+    assert done.taken == 0 and done.clock_steps == 1 and len(done.kept) == 1

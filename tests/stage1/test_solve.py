@@ -107,10 +107,11 @@ class _KeptMoves:
     def __init__(self, aims):
         self.aims, self.done = list(aims), False
 
-    def step(self, aim, score):
-        kept = self.aims.pop(0)
-        self.done = not self.aims
-        return kept, score + 1.0
+    def rounds(self, aim, rounds, deadline=None, progress=None):
+        from octcl.host.stage1.aim import AimRounds
+
+        kept, self.aims, self.done = [aim, *self.aims], [], True
+        return AimRounds(kept, len(kept) - 1, 0)
 
 
 def _moved_aims(levels, count):
