@@ -14,7 +14,7 @@ the rest of a short run:
   on the CPU figure and ended at about 7 s.
 
 So :func:`import_torch` times the import where it happens and keeps the last
-:data:`KEPT_TIMES` figures in octcl's cache (:func:`octcl.device.runtime.cache_dir`),
+:data:`KEPT_TIMES` figures in octcl's cache (:class:`octcl.measured.MeasuredTimes`),
 per Python interpreter and torch version; :func:`torch_import_s` answers 0
 once torch is imported, the median of the figures kept where there are some
 (an import from a cold page cache takes longer than the next ones: 1.6–1.7 s
@@ -41,12 +41,12 @@ longer: its times are kept apart (:data:`BACKGROUND`), and
 
 from __future__ import annotations
 
-import json
-import statistics
 import sys
 import threading
 import time
 from importlib import metadata
+
+from .measured import MeasuredTimes
 
 #: Seconds ``import torch`` is taken to cost for a CPU build nothing was measured for (1.0–1.2 s measured).
 CPU_BUILD_IMPORT_S = 1.2
@@ -63,6 +63,9 @@ BACKGROUND_FACTOR = 1.5
 #: Seconds a running background import is taken to need at least, whatever its expected time says.
 BACKGROUND_LEFT_MIN_S = 0.1
 
+#: The measured import times, per interpreter and torch version (and :data:`BACKGROUND`).
+MEASURED = MeasuredTimes(CACHE_FILE, KEPT_TIMES)
+
 _background: dict = {}  # "thread" and "started" (time.perf_counter()) of this process's background import
 
 
@@ -75,25 +78,6 @@ def _torch_version() -> str | None:
 
 def _key(version: str, mode: str = "") -> str:
     return f"{sys.executable} torch {version}" + (f" {mode}" if mode else "")
-
-
-def _cache_path():
-    from .device.runtime import cache_dir
-
-    return cache_dir() / CACHE_FILE
-
-
-def _measured() -> dict:
-    try:
-        measured = json.loads(_cache_path().read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-    return measured if isinstance(measured, dict) else {}
-
-
-def _times(measured: dict, version: str, mode: str = "") -> list[float]:
-    times = measured.get(_key(version, mode))
-    return [float(value) for value in times if isinstance(value, (int, float))] if isinstance(times, list) else []
 
 
 def _importing() -> bool:
@@ -119,9 +103,9 @@ def _expected_s(mode: str = "") -> float:
     version = _torch_version()
     if version is None:
         return CPU_BUILD_IMPORT_S  # the import will fail and say why; nothing to wait for
-    times = [value for value in _times(_measured(), version, mode) if value >= 0]
-    if times:
-        return statistics.median(times)
+    measured = MEASURED.median(_key(version, mode))
+    if measured is not None:
+        return measured
     if mode:
         return BACKGROUND_FACTOR * _expected_s()
     return CPU_BUILD_IMPORT_S if _cpu_build(version) else OTHER_BUILD_IMPORT_S
@@ -143,17 +127,8 @@ def record_import_s(seconds: float, mode: str = "") -> None:
     the background (:data:`BACKGROUND`); the last :data:`KEPT_TIMES` of each stay, and a cache that cannot be
     written is left as it is."""
     version = _torch_version()
-    if version is None:
-        return
-    from ._io import atomic_write
-
-    measured = _measured()
-    measured[_key(version, mode)] = [*_times(measured, version, mode), round(float(seconds), 3)][-KEPT_TIMES:]
-    try:
-        with atomic_write(_cache_path(), "w") as handle:
-            json.dump(measured, handle, indent=1)
-    except OSError:
-        pass
+    if version is not None:
+        MEASURED.record(_key(version, mode), seconds)
 
 
 def import_torch():

@@ -68,11 +68,12 @@ import numpy as np
 
 from octcl._io import atomic_write, check_output_path
 from octcl.config import DEFAULT_CONFIG, ScannerConfig
+from octcl.measured import MeasuredTimes
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.torch_import import import_torch_in_background, torch_import_s
 
 from ..stage1.backend import BACKENDS, make_backend
-from ..stage1.ceiling import WRITABLE, aimed_levels, measure_ceiling
+from ..stage1.ceiling import WRITABLE, aimed_levels, error_diffused, measure_ceiling, nearest_writable
 from ..stage1.levels import target_levels
 from ..stage1.start import DISPLAY_ITERATIONS
 from ..stage3.refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, RefineClock, check_target_score, refine
@@ -92,15 +93,23 @@ REGIMES = ("linear", "physical", "tissue")
 FIELD_BUDGET_FRACTION = 0.08
 FIELD_BUDGET_CAP_S = 45.0
 #: Seconds the linear regime keeps back from stage 1 for stage 2 and the first
-#: write of its phantom (:func:`field_budget_s`): the exact decode took
+#: write of its phantom where this machine has measured neither (:func:`write_reserve_s`): the exact decode took
 #: 0.58–0.65 s and the write 0.2–0.3 s on two cores of an AMD EPYC
 #: (``octcl invert`` reports, ``seconds.decode`` and
-#: ``seconds.checkpoint_writes``), so that ``--time-budget B`` writes its
-#: phantom about B s after the command started (docs/benchmarks.md).
+#: ``seconds.checkpoint_writes``); 1.05–1.10 s and 0.30–0.33 s on two of the first Zen generation.
 LINEAR_WRITE_RESERVE_S = 1.0
 #: The same for the tissue regime, whose decode (:func:`octcl.host.stage2.tissue.decode_tissue`) took 1.7 s on two
 #: cores (skin phantom, seed 5; 2.5 s before its pairs were chosen again only where a cell left its own).
 TISSUE_WRITE_RESERVE_S = 4.0
+#: Seconds of the close after the first write where this machine has measured none (:func:`write_reserve_s`):
+#: stage 3's setup and its input's render, when no step follows (0.43–0.68 s on two first-generation Zen cores,
+#: ``seconds.refine`` of ``--time-budget 3`` runs).
+CLOSE_S = 0.5
+#: The spans a run measures and the next run's clock starts from (:mod:`octcl.measured`), per grid
+#: (``NZxNX``): per regime, its decode and first write (``"<regime> first write NZxNX"``), the close after
+#: it in a run whose stage 3 took no step (``"close NZxNX"``, stage 3's seconds less its exact scores), and
+#: the tissue figures (``"tissue figures NZxNX"``).
+SPANS = MeasuredTimes("invert_spans.json")
 #: Stage 1's seconds at least, however little of the budget is left.
 MIN_FIELD_BUDGET_S = 0.2
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
@@ -155,6 +164,12 @@ FIXED_THREADS = 1
 #: :data:`FINAL_RESERVE_FRACTION` of itself instead (1.5 s of 10 s).
 FINAL_RESERVE_S = 7.0
 FINAL_RESERVE_FRACTION = 0.15
+#: Factor on what follows stage 3 by this run's measures (:meth:`_Run.after_stage_3_s`): its first write, the
+#: ceiling's scores still to compute, the tissue figures. Stage 3 keeps back that, with this margin for a
+#: loaded machine, and :data:`EXIT_RESERVE_S`, where it is less than :func:`final_reserve_s`: a 30 s tissue run
+#: of orange.png kept back 4.5 s and ended at 26.7 s (two first-generation Zen cores), its write taking 0.37 s,
+#: the ceiling's score 0.45 s and the figures about 0.4 s after stage 3.
+AFTER_STAGE_3_FACTOR = 1.5
 #: Seconds before :attr:`_Run.exit_by` below which a run does not import torch on a thread beside stage 1: under a
 #: short budget the clock sets stage 1's steps, and the import slowed them (orange.png on two EPYC cores:
 #: ``--time-budget 3`` ended at 5.34 and 3.27 s, ``--time-budget 5`` at 5.35 s with its score left out, against
@@ -524,19 +539,36 @@ class _LazyExactScore:
         return dict(self.scores[key])
 
 
-def field_budget_s(regime: str, time_budget_s: float, elapsed_s: float) -> float:
-    """Stage 1's seconds in deadline mode, ``elapsed_s`` of the budget gone (the process's start, the imports).
+def _span(name: str, config: ScannerConfig) -> str:
+    return f"{name} {config.depth_pixels}x{config.a_scans}"
+
+
+def write_reserve_s(regime: str, config: ScannerConfig = DEFAULT_CONFIG) -> float:
+    """Seconds stage 1 leaves in the linear and tissue regimes, so that the process ends within its budget: the
+    decode and first write, then the close, each the longest of those this machine measured last (:data:`SPANS`;
+    :data:`LINEAR_WRITE_RESERVE_S` or :data:`TISSUE_WRITE_RESERVE_S`, and :data:`CLOSE_S`, where it measured
+    none), and :data:`EXIT_RESERVE_S`."""
+    first = SPANS.times(_span(f"{regime} first write", config))
+    close = SPANS.times(_span("close", config))
+    default = LINEAR_WRITE_RESERVE_S if regime == "linear" else TISSUE_WRITE_RESERVE_S
+    return (max(first) if first else default) + (max(close) if close else CLOSE_S) + EXIT_RESERVE_S
+
+
+def field_budget_s(regime: str, time_budget_s: float, elapsed_s: float, reserve_s: float | None = None,
+                   config: ScannerConfig = DEFAULT_CONFIG) -> float:
+    """Stage 1's seconds in deadline mode, ``elapsed_s`` of the budget gone (the process's start, the imports,
+    the backend's programs).
 
     Physical regime: :data:`FIELD_BUDGET_FRACTION` of the budget, at most
-    :data:`FIELD_BUDGET_CAP_S`. Linear regime: all of it but what stage 2
-    and the first write need (:data:`LINEAR_WRITE_RESERVE_S`), so that the
-    phantom is written within the budget; a default run's stage 1 ends at
-    its step counts long before. At least :data:`MIN_FIELD_BUDGET_S`: a
-    budget shorter than the process's start still gets a phantom, late.
+    :data:`FIELD_BUDGET_CAP_S`. Linear and tissue regimes: all of it but
+    ``reserve_s`` (default :func:`write_reserve_s` on ``config``'s grid: the decode, the
+    first write and the close as this machine measured them), so that the process
+    ends within the budget; a default run's stage 1 ends at its step counts
+    long before. At least :data:`MIN_FIELD_BUDGET_S`: a budget shorter than
+    the process's fixed costs still gets a phantom, late.
     """
     if regime in ("linear", "tissue"):
-        reserve = LINEAR_WRITE_RESERVE_S if regime == "linear" else TISSUE_WRITE_RESERVE_S
-        budget = time_budget_s - elapsed_s - reserve
+        budget = time_budget_s - elapsed_s - (write_reserve_s(regime, config) if reserve_s is None else reserve_s)
     else:
         budget = min(FIELD_BUDGET_FRACTION * time_budget_s, FIELD_BUDGET_CAP_S) - elapsed_s
     return min(max(budget, MIN_FIELD_BUDGET_S), FIELD_BUDGET_CAP_S)
@@ -685,8 +717,8 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         (deadline mode) stage 1 gets min(8 % of it, 45 s), stage 2 runs
         once and stage 3 gets the rest, so how far each stage gets depends
         on the machine's speed and load (linear regime: stage 1 gets all of
-        it but what has gone and :data:`LINEAR_WRITE_RESERVE_S`,
-        :func:`field_budget_s`). With ``iterations`` it is only a
+        it but what has gone and what the decode, the first write and the
+        close took on this machine, :func:`write_reserve_s`). With ``iterations`` it is only a
         ceiling: :class:`TimeBudgetExceeded` if the fixed schedule has not
         ended when stage 3 would have to stop.
     seed : int
@@ -858,7 +890,8 @@ class _Run:
         self.started, self.time_budget_s, self.seed = started, time_budget_s, seed
         self.deadline = started + time_budget_s - final_reserve_s(time_budget_s)
         self.tell = _ProgressReporter(progress, started, self.deadline)
-        self.field_budget = None if plan.fixed else field_budget_s(plan.regime, time_budget_s, self.elapsed())
+        self.field_budget = None  # set where stage 1 begins (start)
+        self.first_write_s = None
         self.ceiling = RefineClock(None, self.deadline if plan.fixed else None)
         self.writer, self.seconds, self.trace, self.offset = None, {}, [], 0.0
         self.exact_score = _LazyExactScore(target, config)
@@ -899,6 +932,9 @@ class _Run:
 
         self.tell("field", 0, 0)
         field_backend = make_backend(plan.backend, self.config, plan.threads)
+        # After the backend's programs are built: what they took is gone from the budget too.
+        self.field_budget = None if plan.fixed else field_budget_s(plan.regime, self.time_budget_s, self.elapsed(),
+                                                                   config=self.config)
         first = _STARTS[plan.regime](target_scan(self.target), self.config, plan.schedule, plan.field_iterations,
                                      plan.field_schedule, self.field_budget, plan.threads, self.seed, field_step,
                                      self.tell, self.exact_score, field_backend)
@@ -911,6 +947,7 @@ class _Run:
         """The first phantom into the output, at once: from here on the output always holds a complete one."""
         self.writer = _CheckpointWriter(self.output_path, self.config, CHECKPOINT_INTERVAL_S)
         self.writer.write_now(phantom)
+        self.first_write_s = self.writer.seconds
 
     def refine(self, first: _Start, target_score):
         """Stage 3 (:func:`octcl.host.stage3.refine.refine`) from the first phantom, each improvement offered to the writer."""
@@ -921,12 +958,30 @@ class _Run:
         self.ceiling.check_ceiling("before stage 3")
         self.offset = self.elapsed()
         fixed = self.plan.fixed
+        if not fixed:  # what follows stage 3 is measured by now: keep back that, not the budget's share
+            self.deadline = max(self.deadline, self.exit_by - AFTER_STAGE_3_FACTOR * self.after_stage_3_s())
+            self.tell.end = self.deadline
         return refine(first.phantom, self.target, first.schedule, deadline=None if fixed else self.deadline,
                       kernels=kernels, config=self.config, progress=self.tell.refine, exact_score=self.exact_score,
                       on_improvement=lambda improved, components: self.writer.offer(improved),
                       ceiling=self.ceiling.ceiling if fixed else None, threads=self.plan.threads,
                       target_score=target_score, aim=first.aim,
                       score_by=self.exit_by)
+
+    def after_stage_3_s(self) -> float:
+        """Seconds of what follows stage 3, by this run's and this machine's measures: a write (this run's
+        first), the ceiling's scores not computed yet (:meth:`_LazyExactScore.cost_s`) and, in the tissue
+        regime, the figures (:meth:`tissue_figures_s`)."""
+        levels = self.exact_score.levels
+        images = () if WRITABLE[levels].all() else (nearest_writable(levels), error_diffused(levels))
+        seconds = self.first_write_s + sum(self.exact_score.cost_s(image) for image in images)
+        return seconds + (self.tissue_figures_s() if self.plan.regime == "tissue" else 0.0)
+
+    def tissue_figures_s(self) -> float:
+        """Seconds :meth:`tissue_figures` is taken to need: the longest this machine measured last (:data:`SPANS`),
+        else :data:`TISSUE_FIGURES_S`."""
+        figures = SPANS.times(_span("tissue figures", self.config))
+        return max(figures) if figures else TISSUE_FIGURES_S
 
     @property
     def exit_by(self) -> float | None:
@@ -945,14 +1000,25 @@ class _Run:
     def tissue_figures(self, phantom, levels) -> tuple[dict | None, np.ndarray | None]:
         """:func:`octcl.tissue.tissue_figures` of the written phantom against the target's levels, and its
         attenuation map, from one transmission map; None for both where they would not end by :attr:`exit_by`
-        (:data:`TISSUE_FIGURES_S`)."""
+        (:meth:`tissue_figures_s`)."""
         from octcl.tissue import attenuation_map, tissue_figures, transmission_map
 
-        if not self.fits_before_exit(TISSUE_FIGURES_S):
+        if not self.fits_before_exit(self.tissue_figures_s()):
             return None, None
+        start = time.monotonic()
         transmission = transmission_map(phantom, self.config)
-        return (tissue_figures(phantom, levels, self.config, transmission),
-                attenuation_map(transmission, self.config))
+        figures = (tissue_figures(phantom, levels, self.config, transmission),
+                   attenuation_map(transmission, self.config))
+        SPANS.record(_span("tissue figures", self.config), time.monotonic() - start)
+        return figures
+
+    def record_spans(self, result) -> None:
+        """Keep this run's decode and first write, and its close where stage 3 took no step, for the next
+        run's clock (:data:`SPANS`, :func:`write_reserve_s`)."""
+        SPANS.record(_span(f"{self.plan.regime} first write", self.config),
+                     self.seconds.get("decode", 0.0) + self.first_write_s)
+        if result.iterations == 0:
+            SPANS.record(_span("close", self.config), self.seconds["refine"] - result.timings_s.get("exact_score", 0.0))
 
     def outcome(self, name: str, first: _Start, result) -> tuple[InvertResult, dict]:
         """The result and the report's settings, after the last write.
@@ -970,6 +1036,7 @@ class _Run:
         seconds["written"] = writer.last_write - self.started
         self.trace += [{**entry, "time_s": entry["time_s"] + self.offset} for entry in result.trace]
         seconds["total"] = self.elapsed()
+        self.record_spans(result)
         self.tell("done", result.iterations, plan.schedule.total_iterations, done=True)
         levels, rendered = self.exact_score.levels, result.levels
         ceiling = measure_ceiling(levels, self.ceiling_score)
@@ -989,6 +1056,7 @@ class _Run:
             avoidable_share=float(np.mean(WRITABLE[levels] & (rendered != levels))),
             tissue=tissue, levels=rendered, attenuation_per_mm=attenuation)
         settings = {"time_budget_s": self.time_budget_s, "field_budget_s": self.field_budget,
+                    "refine_deadline_s": None if plan.fixed else self.deadline - self.started,
                     "field_iterations_planned": plan.field_iterations, "field_threads": first.threads,
                     "field_backend": plan.backend, "field_clock_steps": first.clock_steps,
                     "field_candidates": first.candidates, "tissue_decode": first.decode,

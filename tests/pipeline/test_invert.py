@@ -182,27 +182,74 @@ def test_a_deadline_run_that_took_no_decision_from_the_clock_repeats(tmp_path, l
 
 
 def test_stage_1_budget_counts_what_the_budget_has_lost_before_it():
-    from octcl.host.pipeline.invert import FIELD_BUDGET_CAP_S, FIELD_BUDGET_FRACTION, LINEAR_WRITE_RESERVE_S, MIN_FIELD_BUDGET_S, field_budget_s
+    from octcl.host.pipeline.invert import FIELD_BUDGET_CAP_S, FIELD_BUDGET_FRACTION, MIN_FIELD_BUDGET_S, field_budget_s
 
-    # Linear: all but the decode-and-write reserve and what the process's start took.
-    assert field_budget_s("linear", 5.0, 0.7) == pytest.approx(5.0 - 0.7 - LINEAR_WRITE_RESERVE_S)
-    assert field_budget_s("linear", 600.0, 0.7) == FIELD_BUDGET_CAP_S
-    assert field_budget_s("linear", 1.0, 0.9) == MIN_FIELD_BUDGET_S  # late, but a phantom
+    # Linear: all but the reserve (decode, first write, close) and what the process's start took.
+    assert field_budget_s("linear", 5.0, 0.7, reserve_s=1.5) == pytest.approx(5.0 - 0.7 - 1.5)
+    assert field_budget_s("linear", 600.0, 0.7, reserve_s=1.5) == FIELD_BUDGET_CAP_S
+    assert field_budget_s("linear", 1.0, 0.9, reserve_s=1.5) == MIN_FIELD_BUDGET_S  # late, but a phantom
     # Physical: its share of the budget, from the start.
     assert field_budget_s("physical", 100.0, 0.5) == pytest.approx(FIELD_BUDGET_FRACTION * 100.0 - 0.5)
     assert field_budget_s("physical", 6000.0, 0.5) == pytest.approx(FIELD_BUDGET_CAP_S - 0.5)
 
 
-def test_budget_runs_from_the_start_it_is_given(layers_path, tmp_path):
-    """A budget that began 2 s before the call leaves stage 1 2 s less; the write's time counts from that start."""
-    from octcl.host.pipeline.invert import LINEAR_WRITE_RESERVE_S
+def test_the_reserve_is_what_this_machine_measured_per_grid_else_the_defaults(monkeypatch, tmp_path):
+    """The longest of the decode-and-first-write spans and of the closes kept for the regime and grid, and the
+    exit's; the defaults where none was measured, and for another grid."""
+    from octcl.config import ScannerConfig
+    from octcl.host.pipeline.invert import (CLOSE_S, EXIT_RESERVE_S, LINEAR_WRITE_RESERVE_S, SPANS,
+                                            TISSUE_WRITE_RESERVE_S, write_reserve_s)
+
+    monkeypatch.setenv("OCTCL_CACHE_DIR", str(tmp_path))
+    assert write_reserve_s("linear") == pytest.approx(LINEAR_WRITE_RESERVE_S + CLOSE_S + EXIT_RESERVE_S)
+    for seconds in (1.4, 1.6, 1.5):
+        SPANS.record("linear first write 256x512", seconds)
+    SPANS.record("close 256x512", 0.3)
+    assert write_reserve_s("linear") == pytest.approx(1.6 + 0.3 + EXIT_RESERVE_S)
+    assert write_reserve_s("tissue") == pytest.approx(TISSUE_WRITE_RESERVE_S + 0.3 + EXIT_RESERVE_S)
+    small = ScannerConfig(depth_pixels=64, a_scans=128)
+    assert write_reserve_s("linear", small) == pytest.approx(LINEAR_WRITE_RESERVE_S + CLOSE_S + EXIT_RESERVE_S)
+
+
+def test_budget_runs_from_the_start_it_is_given(layers_path, tmp_path, monkeypatch):
+    """A budget that began 2 s before the call leaves stage 1 2 s less; the write's time counts from that start.
+    The run keeps its decode-and-first-write span and, where stage 3 took no step, its close for the next run."""
+    from octcl.host.pipeline.invert import EXIT_RESERVE_S, SPANS
+
+    monkeypatch.setenv("OCTCL_CACHE_DIR", str(tmp_path / "cache"))
 
     started = time.monotonic() - 2.0
     result = invert(layers_path, tmp_path / "out.txt", time_budget_s=6.0, report_path=tmp_path / "r.json",
                     started=started)
     report = json.loads((tmp_path / "r.json").read_text())
-    assert report["settings"]["field_budget_s"] <= 6.0 - 2.0 - LINEAR_WRITE_RESERVE_S
+    assert report["settings"]["field_budget_s"] <= 6.0 - 2.0 - EXIT_RESERVE_S
     assert 2.0 < result.seconds["written"] <= result.seconds["total"]
+    first_write = SPANS.times("linear first write 256x512")
+    assert len(first_write) == 1 and result.seconds["decode"] < first_write[0] < result.seconds["written"]
+    assert len(SPANS.times("close 256x512")) == (1 if result.iterations == 0 else 0)
+
+
+def test_stage_3_keeps_back_what_follows_it_by_this_runs_measures(real_like_target, tmp_path, monkeypatch):
+    """Deadline mode: stage 3 keeps back, of a 30 s budget, its write, the ceiling's scores still to compute and
+    the exit, with a margin, where that is less than the budget's share (4.5 s): its deadline in the report
+    is later than 30 − 4.5 s and leaves those."""
+    from octcl.host.pipeline.invert import AFTER_STAGE_3_FACTOR, EXIT_RESERVE_S, final_reserve_s
+
+    import shutil
+
+    from octcl._lpips import WEIGHTS_FILENAME, weights_path
+
+    cache = tmp_path / "cache"  # no spans measured yet
+    cache.mkdir()
+    shutil.copy(weights_path(), cache / WEIGHTS_FILENAME)  # the ceiling's scores need the LPIPS weights
+    monkeypatch.setenv("OCTCL_CACHE_DIR", str(cache))
+    result = invert(real_like_target, tmp_path / "out.txt", time_budget_s=30.0, report_path=tmp_path / "r.json")
+    report = json.loads((tmp_path / "r.json").read_text())
+    deadline = report["settings"]["refine_deadline_s"]
+    assert 30.0 - final_reserve_s(30.0) < deadline
+    write = report["seconds"]["checkpoint_writes"] / report["checkpoints"]  # this run's writes
+    assert deadline <= 30.0 - EXIT_RESERVE_S - AFTER_STAGE_3_FACTOR * 0.5 * write
+    assert result.seconds["total"] < 30.0
 
 
 def test_a_budget_with_no_time_left_to_score_writes_its_phantom_and_leaves_the_score_out(real_like_target, tmp_path):

@@ -91,3 +91,13 @@ def test_the_aim_puts_the_brightest_pixel_at_255_where_the_target_does_not_reach
     assert np.array_equal(aimed[others], error_diffused(levels)[others])
     levels[7, 7] = 255
     assert np.array_equal(aimed_levels(levels), error_diffused(levels))
+
+
+def test_the_diffused_image_is_kept_for_a_second_call_and_handed_out_as_a_copy():
+    levels = np.full((8, 16), 37, np.uint8)  # 37 is not writable: every pixel moves
+    first = error_diffused(levels)
+    first[:] = 0  # the caller's copy
+    again = error_diffused(levels)
+    assert np.isin(again, (36, 38)).all() and again is not first
+    levels[0, 0] = 36  # other levels, another image
+    assert error_diffused(levels)[0, 0] == 36
