@@ -117,10 +117,17 @@ def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
     value_angles = np.angle(values)
     weights = np.zeros((carriers.shape[0],) + np.shape(values))
     turn = 2 * np.pi
+    claimed = np.zeros(np.shape(values), bool)
     for position, first in enumerate(order):
         second = order[(position + 1) % order.size]
         sector = (angles[second] - angles[first]) % turn
-        inside = (value_angles - angles[first]) % turn < sector
+        within = (value_angles - angles[first]) % turn
+        # A value on a carrier's angle can round to just outside both sectors beside it (−1 − 1j against a
+        # carrier at −3π/4 + 4e−16: 2π below one, the whole sector above the other): each sector takes what
+        # lies within SECTOR_EDGE_RAD of its edges, the first to take a value keeps it, and the weight on
+        # the far side, −1e−14 of the value at most, is clipped to 0 below.
+        inside = ~claimed & ((within < sector + SECTOR_EDGE_RAD) | (within > turn - SECTOR_EDGE_RAD))
+        claimed |= inside
         c1, c2 = carriers[first], carriers[second]
         # value = p·c1 + q·c2 with real p, q: Im(conj(c1)·c2) is the determinant. Computed for every value
         # and kept where it lies in this sector: cheaper than gathering the sector's values.
@@ -130,6 +137,8 @@ def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
     return np.maximum(weights, 0.0)  # rounding can leave −1e−17 on a sector's edge
 
 
+#: Angle (rad) within which a value on the edge of :func:`split_on_carriers`' sectors is taken by either.
+SECTOR_EDGE_RAD = 1e-14
 #: Terms of the series in :func:`rendered_cells` for the rounded offsets' depth-kernel shifts.
 _SHIFT_TERMS = 3
 

@@ -90,6 +90,17 @@ def _onednn_off():
         torch.backends.mkldnn.enabled = previous
 
 
+@contextlib.contextmanager
+def _one_thread():
+    """Run torch on one thread, then restore the caller's count."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 @dataclass
 class LossValue:
     """One evaluation of :class:`DisplayLoss`.
@@ -145,11 +156,13 @@ class DisplayLoss:
             with _onednn_off():
                 target = torch.as_tensor(np.asarray(target_scan), dtype=dtype)
                 self.target = {"Struct": target, **maps_torch(target)}
-            # AlexNet with oneDNN, as in __call__: its features are then the same bits at every
-            # thread count (without oneDNN, layers 2–5 differ between 1 and 2 threads), so the
-            # loss does not depend on the thread count at which it was built.
-            self._target_taps = {
-                name: self._taps(self.target[name]) for name in LPIPS_TERMS.values()}
+            # AlexNet with oneDNN, as in __call__, and on one thread: the loss must not depend on the
+            # thread count at which it was built. Without oneDNN, layers 2–5 differed between 1 and 2
+            # threads on an EPYC; with it they did not there, but did on a first-generation Zen
+            # (tests/stage3/test_refine.py, the loss whatever thread count built it).
+            with _one_thread():
+                self._target_taps = {
+                    name: self._taps(self.target[name]) for name in LPIPS_TERMS.values()}
 
     def _taps(self, image: torch.Tensor) -> list[torch.Tensor]:
         """LPIPS's unit-normalised AlexNet activations of a grey (H, W) image in [0, 1]."""

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from octcl import _reference as ref
@@ -20,6 +20,7 @@ from conftest import random_field, reference_rendering, SMALL_SCANNER as SMALL
 @settings(max_examples=50, deadline=None)
 @given(st.lists(st.complex_numbers(max_magnitude=1e3, allow_nan=False, allow_infinity=False), min_size=1,
                 max_size=40))
+@example([-1 - 1j])  # on row 0's carrier at −3π/4, to 4e−16: once outside both sectors beside it
 def test_split_on_carriers_is_non_negative_two_per_value_and_exact(values):
     values = np.array(values)
     rows = row_carriers(DEFAULT_CONFIG)[:, :, 0]
