@@ -133,7 +133,8 @@ def check_outputs(out: Path, names: list[str], report_table) -> dict:
             assert 0 < len(phantom) <= 300_000
             report = json.loads(stem.with_suffix(".report.json").read_text())
             assert report["target"] == name and report["batch"]["target"] == name
-            assert row["mean"] == report["components"]["mean"]
+            # The summary's score is the report's; a budget with no time left for it leaves both out.
+            assert row["mean"] == (None if report["components"] is None else report["components"]["mean"])
     return summary
 
 
