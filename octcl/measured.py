@@ -12,7 +12,7 @@ for a CUDA one (:mod:`octcl.torch_import`).
 
 :class:`MeasuredTimes` keeps the last ``kept`` figures of each named span
 in one JSON file of the cache folder (:func:`octcl.device.runtime.cache_dir`),
-and answers their median: a run measures its spans where it pays them, and
+and answers their median or the longest: a run measures its spans where it pays them, and
 the next run's clock starts from what this machine did, not from another
 machine's constant. A file that cannot be read counts as empty, and one that
 cannot be written is left as it is: the clock then falls back on its
@@ -63,6 +63,11 @@ class MeasuredTimes:
         """The median of the figures kept for ``name``, or None where there are none."""
         values = self.times(name)
         return statistics.median(values) if values else None
+
+    def longest(self, name: str, default: float) -> float:
+        """The longest of the figures kept for ``name``, or ``default`` where there are none."""
+        values = self.times(name)
+        return max(values) if values else default
 
     def record(self, name: str, seconds: float) -> None:
         """Keep ``seconds`` for ``name`` (the last :attr:`kept` stay); a cache that cannot be written is left."""

@@ -18,6 +18,7 @@ def test_the_last_figures_of_a_name_are_kept_and_their_median_answered(cache):
         times.record("decode", seconds)
     times.record("write", 0.25)
     assert times.times("decode") == [1.0, 2.0, 4.0] and times.median("decode") == 2.0
+    assert times.longest("decode", 9.0) == 4.0 and times.longest("render", 9.0) == 9.0
     assert MeasuredTimes("spans.json").times("write") == [0.25]  # another instance reads the same file
     assert (cache / "spans.json").exists()
 

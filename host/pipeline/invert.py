@@ -548,10 +548,9 @@ def write_reserve_s(regime: str, config: ScannerConfig = DEFAULT_CONFIG) -> floa
     decode and first write, then the close, each the longest of those this machine measured last (:data:`SPANS`;
     :data:`LINEAR_WRITE_RESERVE_S` or :data:`TISSUE_WRITE_RESERVE_S`, and :data:`CLOSE_S`, where it measured
     none), and :data:`EXIT_RESERVE_S`."""
-    first = SPANS.times(_span(f"{regime} first write", config))
-    close = SPANS.times(_span("close", config))
     default = LINEAR_WRITE_RESERVE_S if regime == "linear" else TISSUE_WRITE_RESERVE_S
-    return (max(first) if first else default) + (max(close) if close else CLOSE_S) + EXIT_RESERVE_S
+    return (SPANS.longest(_span(f"{regime} first write", config), default)
+            + SPANS.longest(_span("close", config), CLOSE_S) + EXIT_RESERVE_S)
 
 
 def field_budget_s(regime: str, time_budget_s: float, elapsed_s: float, reserve_s: float | None = None,
@@ -980,8 +979,7 @@ class _Run:
     def tissue_figures_s(self) -> float:
         """Seconds :meth:`tissue_figures` is taken to need: the longest this machine measured last (:data:`SPANS`),
         else :data:`TISSUE_FIGURES_S`."""
-        figures = SPANS.times(_span("tissue figures", self.config))
-        return max(figures) if figures else TISSUE_FIGURES_S
+        return SPANS.longest(_span("tissue figures", self.config), TISSUE_FIGURES_S)
 
     @property
     def exit_by(self) -> float | None:

@@ -122,13 +122,17 @@ class AimSearch:
     def done(self) -> bool:
         return not self.movable.any() or self.rejections >= PATIENCE
 
+    def _other_side(self, aim: np.ndarray) -> np.ndarray:
+        """Each pixel's level on the other side of its target level: L ± 1 ↔ L ∓ 1."""
+        return (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)
+
     def _predicted_change(self, aim: np.ndarray) -> np.ndarray:
         """g_p·(D(a'_p) − D(a_p)) for every pixel at the first aim this is asked for, 0 where it may not move
         (module docstring): computed once."""
         if self._change is None:
             from ..stage3.loss import DisplayLoss, scan_of_levels
 
-            other = (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)  # L ± 1 ↔ L ∓ 1
+            other = self._other_side(aim)
             display_of = display_of_level()
             gradient = DisplayLoss(scan_of_levels(self.levels), SCORE_WEIGHTS)(display_of[aim]).grad_display
             self._change = np.where(self.movable, gradient * (display_of[other] - display_of[aim]), 0.0).ravel()
@@ -149,9 +153,8 @@ class AimSearch:
             if all(max(abs(rows[index] - rows[t]), abs(columns[index] - columns[t])) > SPACING_PX for t in taken):
                 taken.append(index)
         picks = order[taken]
-        other = (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)
         proposed = aim.copy()
-        proposed.flat[picks] = other.flat[picks]
+        proposed.flat[picks] = self._other_side(aim).flat[picks]
         return proposed, picks
 
     def step(self, aim: np.ndarray, aim_score: float) -> tuple[np.ndarray, float]:
