@@ -159,6 +159,22 @@ def real_like_target(official_data, tmp_path) -> Path:
     return path
 
 
+def cache_with_built_programs(folder: Path) -> Path:
+    """A fresh octcl cache folder (``OCTCL_CACHE_DIR``) holding a copy of this machine's compiled programs and
+    device probes, where there are any: a test of what a run keeps in its cache (torch's import times, the
+    spans) then runs a process on its own cache without compiling every kernel first (15–20 s on two slow
+    cores), which is not what it tests."""
+    import shutil
+
+    from octcl.device.runtime import cache_dir
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("programs", "probes"):
+        if (cache_dir() / name).is_dir():
+            shutil.copytree(cache_dir() / name, folder / name, dirs_exist_ok=True)
+    return folder
+
+
 @pytest.fixture(scope="session")
 def lpips_weights() -> Path:
     """The cached LPIPS weights; fails (not skips) with the fetch hint when missing."""

@@ -10,6 +10,7 @@ from importlib import metadata
 
 import pytest
 
+from conftest import cache_with_built_programs
 from octcl import torch_import
 from octcl._lpips import WEIGHTS_FILENAME, weights_path
 from octcl.host.pipeline.invert import PREFETCH_TORCH_MIN_S
@@ -79,8 +80,7 @@ def test_a_budget_leaves_out_what_a_slow_torch_import_would_push_past_it(real_li
     """Where torch took 100 s to import before, a 20 s budget on a real-like target runs neither the aim step
     nor any score (each needs torch) and never imports it; the phantom is written and the process ends in time."""
     target, output = real_like_target, tmp_path / "out.txt"
-    cache = tmp_path / "cache"
-    cache.mkdir()
+    cache = cache_with_built_programs(tmp_path / "cache")
     (cache / CACHE_FILE).write_text(json.dumps({f"{sys.executable} torch {metadata.version('torch')}": [100.0]}))
     code = ("import json, sys, time\n"
             "started = time.monotonic()\n"
@@ -144,8 +144,7 @@ def test_an_invert_run_begins_the_import_where_it_will_need_torch_and_the_budget
             f"result = invert({str(real_like_target)!r}, sys.argv[1], time_budget_s=float(sys.argv[2]))\n"
             "print(json.dumps([bool(torch_import._background), result.score is not None]))\n")
     version = metadata.version("torch")
-    cache = tmp_path / "cache"  # one for both runs: the second reads the kernels the first compiled
-    cache.mkdir()
+    cache = cache_with_built_programs(tmp_path / "cache")  # one for both runs
     shutil.copy(weights_path(), cache / WEIGHTS_FILENAME)  # the score needs the LPIPS weights
     (cache / CACHE_FILE).write_text(json.dumps({f"{sys.executable} torch {version}": [1.0]}))
     for label, budget, expected in (("long", 3 * PREFETCH_TORCH_MIN_S, [True, True]),
