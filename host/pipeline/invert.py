@@ -894,15 +894,15 @@ class _Run:
         self.ceiling = RefineClock(None, self.deadline if plan.fixed else None)
         self.writer, self.seconds, self.trace, self.offset = None, {}, [], 0.0
         self.exact_score = _LazyExactScore(target, config)
-        self.scanner = self.prefetch()
+        self.scanner = None  # stage 3's kernels, begun on a thread once stage 1's programs are built (start)
+        self.prefetch_torch()
 
-    def prefetch(self):
-        """Begin what the run needs after stage 1 on threads beside it: stage 3's scanner kernels (their future,
-        :func:`octcl.device.scanner.scanner_in_background`) and, where the run will need it, torch's import
-        (:func:`octcl.torch_import.import_torch_in_background`), unless less than :data:`PREFETCH_TORCH_MIN_S` are left
-        before :attr:`exit_by`. A grey
-        scan the scanner could have written, in the linear regime, has nothing to aim and is scored without torch
-        (:class:`_LazyExactScore`).
+    def prefetch_torch(self) -> None:
+        """Begin torch's import on a thread beside stage 1 where the run will need it
+        (:func:`octcl.torch_import.import_torch_in_background`), unless less than :data:`PREFETCH_TORCH_MIN_S` are
+        left before :attr:`exit_by`. A grey scan the scanner could have written, in the linear regime, has nothing
+        to aim and is scored without torch (:class:`_LazyExactScore`). Stage 3's scanner kernels are begun beside
+        stage 1 as well, once its own programs are built (:meth:`start`).
 
         Measured on two EPYC cores (``scripts/bench_versions.py``, docs/benchmarks.md): the default run's median
         wall time over orange.png and six plainly quantised skin renderings fell from 6.22 s to 5.56 s, with the
@@ -910,19 +910,18 @@ class _Run:
         where torch's import takes 2.9–5.3 s, orange.png's median run went from 7.37 s to 6.86 s, and the first
         run on a cold cache no longer compiles the scanner (5.9 s there) after the write.
         """
-        from octcl.device.scanner import scanner_in_background
-
         exact = self.exact_score
         needed = self.plan.regime != "linear" or not (exact.grey and WRITABLE[exact.levels].all())
         if needed and (self.exit_by is None or time.monotonic() + PREFETCH_TORCH_MIN_S <= self.exit_by):
             import_torch_in_background()
-        return scanner_in_background(self.config)
 
     def elapsed(self) -> float:
         return time.monotonic() - self.started
 
     def start(self) -> _Start:
         """Stages 1–2 of the plan's regime (:data:`_STARTS`), stage 1 on the plan's backend."""
+        from octcl.device.scanner import scanner_in_background
+
         plan = self.plan
 
         def field_step(iteration, steps, loss):
@@ -931,6 +930,12 @@ class _Run:
 
         self.tell("field", 0, 0)
         field_backend = make_backend(plan.backend, self.config, plan.threads)
+        # Stage 3's scanner kernels on a thread beside stage 1 (a read of pyopencl's cache, or a machine's first
+        # compile), begun after stage 1's own programs: builds are serialised within a process
+        # (octcl.device.programs.build), and a first compile begun before them held stage 1's back. On two CPU
+        # cores, where the compile and stage 1 share the cores, either order wrote orange.png's phantom at
+        # 16.7–17.8 s on a cold cache (docs/benchmarks.md); on a GPU stage 1 no longer waits for the compile.
+        self.scanner = scanner_in_background(self.config)
         # After the backend's programs are built: what they took is gone from the budget too.
         self.field_budget = None if plan.fixed else field_budget_s(plan.regime, self.time_budget_s, self.elapsed(),
                                                                    config=self.config)
