@@ -77,6 +77,7 @@ from ..stage1.ceiling import WRITABLE, aimed_levels, error_diffused, measure_cei
 from ..stage1.levels import target_levels
 from ..stage1.start import DISPLAY_ITERATIONS
 from ..stage3.refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, RefineClock, check_target_score, refine
+from ..threads import available_cores
 from .target import check_target, read_target, target_scan, target_struct_for_metrics
 
 #: Least time between two checkpoint writes during refinement, in seconds.
@@ -648,12 +649,14 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
                          time_budget_s=budget_s, threads=threads,
                          progress=lambda taken, planned: step(taken, planned, None), aim=aim, backend=field_backend)
     seconds = {"field": found.seconds}
+    # The decode's depth DFTs on the run's threads (the same phantom at any count): 13 passes of 12 DFTs each.
+    workers = threads or available_cores()
     if tissue:
-        phantom, decode = _tissue_decode(found, config, field_backend, budget_s, tell, seconds)
+        phantom, decode = _tissue_decode(found, config, field_backend, budget_s, tell, seconds, workers)
     else:
         tell("decode", 0, 1)
         start = time.monotonic()
-        phantom, decode = decode_exact(found.field, config), None
+        phantom, decode = decode_exact(found.field, config, workers=workers), None
         seconds["decode"] = time.monotonic() - start
         schedule = dataclasses.replace(schedule,
                                        min_log_energy=min(schedule.min_log_energy, math.log(ENERGY_FLOOR_PCT)))
@@ -662,11 +665,12 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
                   found.clock_steps, found.threads, None, seconds, found.candidates, found.aim, decode)
 
 
-def _tissue_decode(found, config, backend, budget_s, tell, seconds: dict) -> tuple[Phantom, dict]:
+def _tissue_decode(found, config, backend, budget_s, tell, seconds: dict, workers: int) -> tuple[Phantom, dict]:
     """Stage 2 of the tissue regime: stage 1's field taken to its least-norm twin
     (:func:`~octcl.host.stage1.start.least_norm_twin`, within what stage 1 left of ``budget_s``), then
     :func:`~octcl.host.stage2.tissue.decode_tissue` of it. Returns the phantom and the decode's choices with the
-    twin's iterations and share at the aim; ``seconds`` gets ``twin`` and ``decode``."""
+    twin's iterations and share at the aim; ``seconds`` gets ``twin`` and ``decode``; ``workers``: the decode's
+    FFT threads."""
     from ..stage1.start import least_norm_twin
     from ..stage2.tissue import decode_tissue
 
@@ -677,7 +681,7 @@ def _tissue_decode(found, config, backend, budget_s, tell, seconds: dict) -> tup
     seconds["twin"] = twin.seconds
     tell("decode", 0, 1)
     start = time.monotonic()
-    decoded = decode_tissue(twin.field, config)
+    decoded = decode_tissue(twin.field, config, workers=workers)
     seconds["decode"] = time.monotonic() - start
     return decoded.phantom, dict(decoded.summary(), twin_iterations=twin.iterations, twin_identical=twin.identical)
 

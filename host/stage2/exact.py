@@ -43,6 +43,7 @@ of the field.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -144,7 +145,7 @@ _SHIFT_TERMS = 3
 
 
 def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
-                   offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS) -> np.ndarray:
+                   offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS, workers: int = 1) -> np.ndarray:
     """The grid field that renders like rows of amplitude ``weights`` at :func:`row_depths_um`.
 
     F_eff = IDFT_q(Σ_d Σ_n e^{−2i(k_q − k0)·o_{d,n}}·M_d[n]·e^{−2πiqn/Nz}),
@@ -154,26 +155,56 @@ def rendered_cells(weights: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     Σ_m (−2i(k_q − k0)·δ)^m/m!, whose terms after the third are below 1e−14
     (|2(k_q − k0)·δ| < 1e−4), so each m is one depth DFT. Row 0's own
     offsets enter as one extra term each.
+
+    The D·:data:`_SHIFT_TERMS` depth DFTs are one call of SciPy's FFT over
+    ``workers`` threads: each column's transform is computed alone, so the
+    result is the same to the bit at any count (``tests/stage2/test_exact.py``).
     """
+    phase, rounding, powers, nominal_shift, first_shift = _rendered_cells_factors(config, _offsets_key(offsets))
+    count = weights.shape[0]
+    terms = np.empty((count, _SHIFT_TERMS) + weights.shape[1:], dtype=np.complex128)
+    first_rows = []
+    for d in range(count):
+        cells = weights[d] * phase[d]
+        first_rows.append(cells[0].copy())
+        cells[0] = 0.0
+        terms[d, 0] = cells
+        for m in range(1, _SHIFT_TERMS):
+            terms[d, m] = terms[d, m - 1] * rounding[d] / m
+    transforms = scipy.fft.fft(terms, axis=2, workers=workers)
+    spectrum = np.zeros(weights.shape[1:], dtype=np.complex128)
+    for d in range(count):
+        series = np.zeros_like(spectrum)
+        for m in range(_SHIFT_TERMS):
+            series += powers[m] * transforms[d, m]
+        spectrum += nominal_shift[d] * series
+        spectrum += first_shift[d] * first_rows[d][None, :]
+    return scipy.fft.ifft(spectrum, axis=0, workers=workers)
+
+
+def _offsets_key(offsets: np.ndarray) -> tuple:
+    """``offsets`` as a hashable key for :func:`_rendered_cells_factors`."""
+    return tuple(float(offset) for offset in np.asarray(offsets).ravel())
+
+
+@functools.lru_cache(maxsize=4)
+def _rendered_cells_factors(config: ScannerConfig, offsets: tuple) -> tuple:
+    """The per-row and per-wavenumber factors of :func:`rendered_cells`, the same for every call with these
+    ``config`` and ``offsets``: each row's carrier e^{−2i·k0·(z_n + o_{d,n})} (D, Nz, 1), its rounding δ_{d,n}
+    (D, Nz, 1), (−2i(k_q − k0))^m (M, Nz, 1), e^{−2i(k_q − k0)·ō_d} and e^{−2i(k_q − k0)·o_{d,0}} (D, Nz, 1)."""
     k = ref.wavenumbers(config)
     k0 = 2 * np.pi / config.wavelength_um
     depth_um = cell_depths_um(config)[:, None]
     nominal = np.asarray(offsets) * config.wavelength_um
-    offsets = row_offsets_um(config, offsets)
-    spectrum = np.zeros(weights.shape[1:], dtype=np.complex128)
-    for d in range(weights.shape[0]):
-        cells = weights[d] * np.exp(-2j * k0 * (depth_um + offsets[d][:, None]))
-        first_row = cells[0].copy()
-        cells[0] = 0.0
-        rounding = (offsets[d] - nominal[d])[:, None]
-        term, series = cells, np.zeros_like(spectrum)
-        for m in range(_SHIFT_TERMS):
-            if m:
-                term = term * rounding / m
-            series += (-2j * (k - k0))[:, None] ** m * scipy.fft.fft(term, axis=0)
-        spectrum += np.exp(-2j * (k - k0) * nominal[d])[:, None] * series
-        spectrum += np.exp(-2j * (k - k0) * offsets[d, 0])[:, None] * first_row[None, :]
-    return scipy.fft.ifft(spectrum, axis=0)
+    row_offsets = row_offsets_um(config, np.asarray(offsets))
+    phase = np.stack([np.exp(-2j * k0 * (depth_um + row_offsets[d][:, None])) for d in range(len(offsets))])
+    rounding = np.stack([(row_offsets[d] - nominal[d])[:, None] for d in range(len(offsets))])
+    powers = np.stack([(-2j * (k - k0))[:, None] ** m for m in range(_SHIFT_TERMS)])
+    nominal_shift = np.stack([np.exp(-2j * (k - k0) * nominal[d])[:, None] for d in range(len(offsets))])
+    first_shift = np.stack([np.exp(-2j * (k - k0) * row_offsets[d, 0])[:, None] for d in range(len(offsets))])
+    for factor in (phase, rounding, powers, nominal_shift, first_shift):
+        factor.flags.writeable = False  # shared by every call
+    return phase, rounding, powers, nominal_shift, first_shift
 
 
 def _cell_weights(field: np.ndarray, config: ScannerConfig, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS,
@@ -239,14 +270,15 @@ def shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, s
 
 def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
                     corrections: int = DECODE_CORRECTIONS, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS,
-                    shadow: np.ndarray | None = None) -> np.ndarray:
+                    shadow: np.ndarray | None = None, workers: int = 1) -> np.ndarray:
     """The rows' amplitudes that render, without shadowing, exactly as the field: (D, Nz, Nx), at the field's scale.
 
     Offset d of cell (n, i) is the row at depth ``row_depths_um(config, offsets)[d, n]``
     on A-scan line i; two of a cell's D are non-zero (module docstring):
     the two carriers enclosing its value or, with ``shadow`` (Nz, Nx), the
     pair whose weights' p² + q² is nearest it (:func:`shadow_pairs`, chosen
-    once from the field).
+    once from the field). ``workers``: threads of the depth DFTs (:func:`rendered_cells`; the same result at
+    any count).
 
     Raises
     ------
@@ -266,7 +298,7 @@ def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
         if shadow is not None:  # chosen from the field; again for a value a correction moved out of its pair
             pairs = _kept_pairs(placed, config, offsets, shadow, pairs)
         weights = _cell_weights(placed, config, offsets, pairs)
-        placed = placed + (field - rendered_cells(weights, config, offsets))
+        placed = placed + (field - rendered_cells(weights, config, offsets, workers))
     return weights
 
 
@@ -299,7 +331,7 @@ def phantom_of_rows(amplitude: np.ndarray, config: ScannerConfig = DEFAULT_CONFI
 
 
 def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
-                 shadow_bound: float = SHADOW_BOUND, corrections: int = DECODE_CORRECTIONS) -> Phantom:
+                 shadow_bound: float = SHADOW_BOUND, corrections: int = DECODE_CORRECTIONS, workers: int = 1) -> Phantom:
     """Two rows per non-zero cell that render, without shadowing, exactly as the field (module docstring).
 
     Parameters
@@ -311,6 +343,8 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
         max_i Σ_j (B_ij·a_j)² of the result, in (0, 0.5]: the absolute scale.
     corrections : int
         Updates of the placed field for the rows' depth-kernel shifts.
+    workers : int
+        Threads of the depth DFTs; the result is the same at any count.
 
     Returns
     -------
@@ -325,7 +359,7 @@ def decode_exact(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     """
     if not 0 < shadow_bound <= 0.5:
         raise ValueError(f"shadow_bound must be in (0, 0.5], got {shadow_bound}")
-    weights = decoded_weights(field, config, corrections)
+    weights = decoded_weights(field, config, corrections, workers=workers)
     # Scale: Σ_j (B_ij·a_j)² over an A-scan is a lateral convolution of the
     # columns' Σ a² with e^{−2d²/w0²} (y = 0), over the offsets the float64
     # scanner resolves (octcl._reference.SHADOW_EXACT_RADIUS_SQ).

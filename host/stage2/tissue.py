@@ -198,7 +198,8 @@ def local_mean_energy(field: np.ndarray) -> np.ndarray:
 
 
 def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, scale_sq: float | None = None,
-                  corrections: int = DECODE_CORRECTIONS, scale_quantile: float = SCALE_QUANTILE) -> TissueDecode:
+                  corrections: int = DECODE_CORRECTIONS, scale_quantile: float = SCALE_QUANTILE,
+                  workers: int = 1) -> TissueDecode:
     """The exact decode's rows at tissue scale (module docstring).
 
     Parameters
@@ -212,8 +213,11 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
         The exact decode's corrections.
     scale_quantile : float
         The quantile of the lines' own c² that :func:`tissue_scale` takes, where ``scale_sq`` is not given.
+    workers : int
+        Threads of the exact decode's depth DFTs; the result is the same at any count.
     """
-    weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, shadow=local_mean_energy(field))
+    weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, shadow=local_mean_energy(field),
+                              workers=workers)
     taps = ref.shadow_taps(config)
     scale_sq = tissue_scale(weights, taps, scale_quantile) if scale_sq is None else float(scale_sq)
     if not scale_sq > 0:

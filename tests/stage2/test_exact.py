@@ -70,6 +70,17 @@ def test_rendered_cells_is_the_reference_scanners_rendering_of_the_rows():
     np.testing.assert_allclose(a_scans, expected, atol=1e-12 * np.abs(expected).max())
 
 
+def test_a_decode_is_the_same_to_the_bit_at_any_fft_thread_count():
+    """The depth DFTs over 2 or 3 threads give the phantom of 1 thread, bit for bit (a run passes its own
+    thread count, and its phantom must not depend on it)."""
+    field = random_field(SMALL, 2)
+    one = decode_exact(field, SMALL, workers=1)
+    for workers in (2, 3):
+        other = decode_exact(field, SMALL, workers=workers)
+        assert all(np.array_equal(getattr(one, name), getattr(other, name))
+                   for name in ("x_um", "y_um", "z_um", "energy_pct"))
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_decode_exact_renders_as_the_field_with_shadowing(seed):
     """The float64 scanner, shadowing included, renders the decoded phantom as A(F), to 1e−9."""
