@@ -113,6 +113,16 @@ CLOSE_S = 0.5
 SPANS = MeasuredTimes("invert_spans.json")
 #: Stage 1's seconds at least, however little of the budget is left.
 MIN_FIELD_BUDGET_S = 0.2
+#: Share of the seconds left before the run's exit that the tissue regime's least-norm twin may take
+#: (:func:`octcl.host.stage1.start.least_norm_twin`, at most its 200 hinge iterations); the rest goes to the
+#: decode and stage 3. The twin's iterations cost 40 ms each on two first-generation Zen cores, where 200 of them
+#: took 6–8 s of a 30 s budget and left stage 3 a few dozen steps, inside its pixel phase. There, under
+#: ``--regime tissue --time-budget 30`` (the twin at about 70 iterations), orange.png and two plainly quantised
+#: skin renderings scored 0.99832, 0.99368, 0.99438 where the whole of what stage 1 left gave 0.99653–0.99745,
+#: 0.98564–0.99043 and 0.95473–0.96360 (two runs each), and skins 6 and 7 0.99808 and 0.99892 against 0.99804
+#: and 0.99389, their shadows and bands as close to the truth's (docs/benchmarks.md). On a faster machine (the
+#: twin's 200 iterations in 2 s) and at the default budget the share is more than the twin takes.
+TWIN_SHARE = 0.15
 #: Stage 1's Adam steps by regime unless given (the learning rate anneals
 #: over them); in the linear regime those of the first display fit
 #: (:data:`octcl.host.stage1.start.DISPLAY_ITERATIONS`, where the choice is measured).
@@ -574,6 +584,16 @@ def field_budget_s(regime: str, time_budget_s: float, elapsed_s: float, reserve_
     return min(max(budget, MIN_FIELD_BUDGET_S), FIELD_BUDGET_CAP_S)
 
 
+def twin_budget_s(stage_1_left_s: float | None, exit_left_s: float | None) -> float | None:
+    """Seconds of the tissue regime's least-norm twin: what stage 1 left of its budget (``stage_1_left_s``), at
+    most :data:`TWIN_SHARE` of the seconds left before the run's exit (``exit_left_s``: the rest is the
+    decode's and stage 3's), at least :data:`MIN_FIELD_BUDGET_S`; None on a fixed schedule (both None), where
+    the twin's iterations alone bound it."""
+    if stage_1_left_s is None or exit_left_s is None:
+        return None
+    return max(min(stage_1_left_s, TWIN_SHARE * exit_left_s), MIN_FIELD_BUDGET_S)
+
+
 def final_reserve_s(time_budget_s: float) -> float:
     """Seconds of the budget that stage 3 leaves for the last write (:data:`FINAL_RESERVE_S`, less for a short one)."""
     return min(FINAL_RESERVE_S, FINAL_RESERVE_FRACTION * time_budget_s)
@@ -609,9 +629,10 @@ class _Start:
 
 
 def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
-                    exact_score, field_backend) -> _Start:
+                    exact_score, field_backend, exit_left=None) -> _Start:
     """Stages 1–2 of the published pipeline: :func:`~octcl.host.stage1.display.fit_field`, then
-    :func:`~octcl.host.stage2.capped.decode_field`."""
+    :func:`~octcl.host.stage2.capped.decode_field` (``exit_left``, the seconds left before the run's exit, is the
+    tissue regime's: the other starts take the same arguments)."""
     from ..stage2.capped import decode_field
     from ..stage1.display import fit_field
 
@@ -626,7 +647,7 @@ def _physical_start(scan, config, schedule, iterations, field_schedule, budget_s
 
 
 def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, threads, seed, step, tell,
-                  exact_score, field_backend, tissue: bool = False) -> _Start:
+                  exact_score, field_backend, exit_left=None, tissue: bool = False) -> _Start:
     """Stages 1–2 in the linear regime (:mod:`octcl.host.stage1.projections`); draws nothing at random.
 
     The aim is :func:`~octcl.host.stage1.ceiling.aimed_levels` of the target. Stage 1
@@ -636,7 +657,8 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
     fit towards the aimed levels; a half-length candidate only where that
     one falls short); stage 2 :func:`~octcl.host.stage2.exact.decode_exact` or, with
     ``tissue`` (the tissue regime), :func:`~octcl.host.stage2.tissue.decode_tissue` of the field's
-    least-norm twin (:func:`_tissue_decode`). The
+    least-norm twin (:func:`_tissue_decode`, within :func:`twin_budget_s` of what stage 1 left of ``budget_s``
+    and of ``exit_left()``, the seconds left before the run's exit; None on a fixed schedule). The
     aim goes on to stage 3, which does nothing where the start renders it.
     """
     from ..stage1.solve import default_schedules
@@ -652,7 +674,9 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
     # The decode's depth DFTs on the run's threads (the same phantom at any count): 13 passes of 12 DFTs each.
     workers = threads or available_cores()
     if tissue:
-        phantom, decode = _tissue_decode(found, config, field_backend, budget_s, tell, seconds, workers)
+        twin_s = twin_budget_s(None if budget_s is None else budget_s - found.seconds,
+                               None if exit_left is None else exit_left())
+        phantom, decode = _tissue_decode(found, config, field_backend, twin_s, tell, seconds, workers)
     else:
         tell("decode", 0, 1)
         start = time.monotonic()
@@ -665,9 +689,9 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
                   found.clock_steps, found.threads, None, seconds, found.candidates, found.aim, decode)
 
 
-def _tissue_decode(found, config, backend, budget_s, tell, seconds: dict, workers: int) -> tuple[Phantom, dict]:
+def _tissue_decode(found, config, backend, twin_s, tell, seconds: dict, workers: int) -> tuple[Phantom, dict]:
     """Stage 2 of the tissue regime: stage 1's field taken to its least-norm twin
-    (:func:`~octcl.host.stage1.start.least_norm_twin`, within what stage 1 left of ``budget_s``), then
+    (:func:`~octcl.host.stage1.start.least_norm_twin`, within ``twin_s`` seconds: :func:`twin_budget_s`), then
     :func:`~octcl.host.stage2.tissue.decode_tissue` of it. Returns the phantom and the decode's choices with the
     twin's iterations and share at the aim; ``seconds`` gets ``twin`` and ``decode``; ``workers``: the decode's
     FFT threads."""
@@ -675,9 +699,7 @@ def _tissue_decode(found, config, backend, budget_s, tell, seconds: dict, worker
     from ..stage2.tissue import decode_tissue
 
     tell("twin", 0, 1)
-    twin = least_norm_twin(found.field, found.aim, backend,
-                           time_budget_s=None if budget_s is None else max(budget_s - found.seconds,
-                                                                           MIN_FIELD_BUDGET_S))
+    twin = least_norm_twin(found.field, found.aim, backend, time_budget_s=twin_s)
     seconds["twin"] = twin.seconds
     tell("decode", 0, 1)
     start = time.monotonic()
@@ -945,7 +967,8 @@ class _Run:
                                                                    config=self.config)
         first = _STARTS[plan.regime](target_scan(self.target), self.config, plan.schedule, plan.field_iterations,
                                      plan.field_schedule, self.field_budget, plan.threads, self.seed, field_step,
-                                     self.tell, self.exact_score, field_backend)
+                                     self.tell, self.exact_score, field_backend,
+                                     exit_left=None if plan.fixed else lambda: self.exit_by - time.monotonic())
         self.seconds.update(first.seconds)
         self.trace.append({"time_s": self.elapsed(), "stage": "field", "iteration": first.field_iterations,
                            "loss": first.field_loss, "score": None})

@@ -276,6 +276,19 @@ def test_the_tissue_regime_writes_a_phantom_at_tissue_scale_and_says_what_it_is(
     assert "levels" not in result.as_dict() and "attenuation_per_mm" not in result.as_dict()
 
 
+def test_the_twin_takes_its_share_of_the_time_left():
+    """The tissue regime's least-norm twin gets what stage 1 left of its budget, at most TWIN_SHARE of the
+    seconds before the exit (the rest is the decode's and stage 3's), at least MIN_FIELD_BUDGET_S; on a fixed
+    schedule its iterations alone bound it."""
+    from octcl.host.pipeline.invert import MIN_FIELD_BUDGET_S, TWIN_SHARE, twin_budget_s
+
+    assert twin_budget_s(None, None) is None
+    assert 0 < TWIN_SHARE < 1
+    assert twin_budget_s(15.0, 20.0) == pytest.approx(TWIN_SHARE * 20.0)  # a short budget: the share
+    assert twin_budget_s(36.0, 590.0) == 36.0  # the default budget: what stage 1 left
+    assert twin_budget_s(-1.0, 20.0) == twin_budget_s(5.0, 0.0) == MIN_FIELD_BUDGET_S
+
+
 def test_the_linear_regime_writes_its_phantom_before_importing_torch(layers_path, tmp_path):
     """Stages 1–2 of one candidate need neither torch nor the scorer, and a scan the scanner rendered,
     inverted exactly, is scored without them: the whole run never imports torch (2 s on two cores)."""
