@@ -654,19 +654,25 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
     is :func:`~octcl.host.stage1.start.linear_start` of ``field_schedule`` or, by
     default, :func:`~octcl.host.stage1.solve.default_schedules` of
     ``iterations`` display steps (a display fit, projections and the hinge
-    fit towards the aimed levels; a half-length candidate only where that
-    one falls short); stage 2 :func:`~octcl.host.stage2.exact.decode_exact` or, with
+    fit towards the aimed levels, then the aim's rounds, none in the tissue regime; a half-length candidate
+    only where that one falls short); stage 2 :func:`~octcl.host.stage2.exact.decode_exact` or, with
     ``tissue`` (the tissue regime), :func:`~octcl.host.stage2.tissue.decode_tissue` of the field's
     least-norm twin (:func:`_tissue_decode`, within :func:`twin_budget_s` of what stage 1 left of ``budget_s``
     and of ``exit_left()``, the seconds left before the run's exit; None on a fixed schedule). The
     aim goes on to stage 3, which does nothing where the start renders it.
     """
-    from ..stage1.solve import default_schedules
+    from ..stage1.solve import DEFAULT_AIM_ROUNDS, default_schedules
     from ..stage1.start import linear_start
     from ..stage2.exact import ENERGY_FLOOR_PCT, decode_exact
 
     aim = aimed_levels(target_levels(scan, config))
-    schedules = default_schedules(iterations) if field_schedule is None else (field_schedule,)
+    # The tissue regime's stage 1 has no aim rounds (its aim is the error-diffused one): they gain a few 1e−6
+    # of score at the scanner's ceiling, where the tissue regime's stage 3 ends 1e−4 and more below it, and
+    # they took 3.3–4.9 s on two first-generation Zen cores. Without them, --regime tissue --time-budget 30
+    # scored 0.99876, 0.99250, 0.99483, 0.99515 on orange.png and plain_skin_0–2 against 0.99779, 0.99346,
+    # 0.99091, 0.99033, with 41–53 stage-3 steps against 31–41 (docs/benchmarks.md).
+    rounds = 0 if tissue else DEFAULT_AIM_ROUNDS
+    schedules = default_schedules(iterations, rounds) if field_schedule is None else (field_schedule,)
     found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, schedules=schedules,
                          time_budget_s=budget_s, threads=threads,
                          progress=lambda taken, planned: step(taken, planned, None), aim=aim, backend=field_backend)

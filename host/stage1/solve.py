@@ -342,14 +342,17 @@ def _aim_step(solve: FieldSolve, rounds: int, budget_s, progress):
 STEPS = {"display": _display_step, "project": _project_step, "hinge": _hinge_step, "aim": _aim_step}
 
 
-def default_schedules(display_iterations: int) -> tuple:
+def default_schedules(display_iterations: int, aim_rounds: int = DEFAULT_AIM_ROUNDS) -> tuple:
     """The linear regime's stage-1 candidates, tried in order (:func:`octcl.host.stage1.start.linear_start`):
-    ``display(N) + project(START_PROJECTIONS) + hinge(200) + aim(DEFAULT_AIM_ROUNDS)``, then the same with
+    ``display(N) + project(START_PROJECTIONS) + hinge(200) + aim(aim_rounds)``, then the same with
     N/2 display steps (:data:`START_LENGTHS`). The aim step does nothing on a target without unwritable
-    levels."""
-    return tuple(display(max(1, round(length * display_iterations))) + project(START_PROJECTIONS)
-                 + hinge(LEVEL_FIT_ITERATIONS) + aim(DEFAULT_AIM_ROUNDS)
-                 for length in START_LENGTHS)
+    levels; with ``aim_rounds`` 0 there is none, and the aim is the error-diffused one."""
+    schedules = []
+    for length in START_LENGTHS:
+        schedule = display(max(1, round(length * display_iterations))) + project(START_PROJECTIONS) \
+            + hinge(LEVEL_FIT_ITERATIONS)
+        schedules.append(schedule + aim(aim_rounds) if aim_rounds else schedule)
+    return tuple(schedules)
 
 
 __all__ = ["AIM_HINGE_ITERATIONS", "AIM_PROJECTIONS", "AIM_REACH_S", "DEFAULT_SHARES", "PROJECTION_SHARE", "FieldSchedule", "FieldSolve", "FieldStep",

@@ -266,6 +266,8 @@ def test_the_tissue_regime_writes_a_phantom_at_tissue_scale_and_says_what_it_is(
     # The decode's field is stage 1's least-norm twin, back on the aimed levels within its iterations.
     assert decode["twin_iterations"] <= TWIN_ITERATIONS and decode["twin_identical"] > 0.9
     assert report["seconds"]["twin"] > 0
+    # Stage 1 without the aim's rounds: its aim is the error-diffused one.
+    assert all("aim" not in candidate["schedule"] for candidate in report["settings"]["field_candidates"])
     assert result.reproduce.startswith("--regime tissue")
     # The maps handed out (a batch draws its pictures from them) are the written file's own.
     from octcl.render import render
