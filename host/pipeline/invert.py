@@ -115,9 +115,9 @@ SPANS = MeasuredTimes("invert_spans.json")
 MIN_FIELD_BUDGET_S = 0.2
 #: Share of the seconds left before the run's exit that the tissue regime's least-norm twin may take
 #: (:func:`octcl.host.stage1.start.least_norm_twin`, at most its 200 hinge iterations); the rest goes to the
-#: decode and stage 3. The twin's iterations cost 40 ms each on two first-generation Zen cores, where 200 of them
+#: decode and stage 3. The twin's iterations cost 30–40 ms each on two first-generation Zen cores, where 200 of them
 #: took 6–8 s of a 30 s budget and left stage 3 a few dozen steps, inside its pixel phase. There, under
-#: ``--regime tissue --time-budget 30`` (the twin at about 70 iterations), orange.png and two plainly quantised
+#: ``--regime tissue --time-budget 30`` (the twin at 90–115 of its iterations), orange.png and two plainly quantised
 #: skin renderings scored 0.99832, 0.99368, 0.99438 where the whole of what stage 1 left gave 0.99653–0.99745,
 #: 0.98564–0.99043 and 0.95473–0.96360 (two runs each), and skins 6 and 7 0.99808 and 0.99892 against 0.99804
 #: and 0.99389, their shadows and bands as close to the truth's (docs/benchmarks.md). On a faster machine (the
