@@ -669,15 +669,15 @@ def _linear_start(scan, config, schedule, iterations, field_schedule, budget_s, 
     # The tissue regime's stage 1 has no aim rounds (its aim is the error-diffused one): they gain a few 1e−6
     # of score at the scanner's ceiling, where the tissue regime's stage 3 ends 1e−4 and more below it, and
     # they took 3.3–4.9 s on two first-generation Zen cores. Without them, --regime tissue --time-budget 30
-    # scored 0.99876, 0.99250, 0.99483, 0.99515 on orange.png and plain_skin_0–2 against 0.99779, 0.99346,
-    # 0.99091, 0.99033, with 41–53 stage-3 steps against 31–41 (docs/benchmarks.md).
+    # scored 0.99853, 0.99474, 0.99588, 0.99547 on orange.png and plain_skin_0–2 against 0.99779, 0.99346,
+    # 0.99091, 0.99033, with 51–55 stage-3 steps against 31–41 (docs/benchmarks.md).
     rounds = 0 if tissue else DEFAULT_AIM_ROUNDS
     schedules = default_schedules(iterations, rounds) if field_schedule is None else (field_schedule,)
     found = linear_start(scan, lambda levels: exact_score(levels)["mean"], config, schedules=schedules,
                          time_budget_s=budget_s, threads=threads,
                          progress=lambda taken, planned: step(taken, planned, None), aim=aim, backend=field_backend)
     seconds = {"field": found.seconds}
-    # The decode's depth DFTs on the run's threads (the same phantom at any count): 13 passes of 12 DFTs each.
+    # The decode's depth DFTs on the run's threads (the same phantom at any count): 3 per row offset a pass.
     workers = threads or available_cores()
     if tissue:
         twin_s = twin_budget_s(None if budget_s is None else budget_s - found.seconds,

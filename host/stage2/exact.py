@@ -194,14 +194,15 @@ def _rendered_cells_factors(config: ScannerConfig, offsets: tuple) -> tuple:
     (D, Nz, 1), (−2i(k_q − k0))^m (M, Nz, 1), e^{−2i(k_q − k0)·ō_d} and e^{−2i(k_q − k0)·o_{d,0}} (D, Nz, 1)."""
     k = ref.wavenumbers(config)
     k0 = 2 * np.pi / config.wavelength_um
-    depth_um = cell_depths_um(config)[:, None]
+    depth_um = cell_depths_um(config)[None, :]
     nominal = np.asarray(offsets) * config.wavelength_um
-    row_offsets = row_offsets_um(config, np.asarray(offsets))
-    phase = np.stack([np.exp(-2j * k0 * (depth_um + row_offsets[d][:, None])) for d in range(len(offsets))])
-    rounding = np.stack([(row_offsets[d] - nominal[d])[:, None] for d in range(len(offsets))])
-    powers = np.stack([(-2j * (k - k0))[:, None] ** m for m in range(_SHIFT_TERMS)])
-    nominal_shift = np.stack([np.exp(-2j * (k - k0) * nominal[d])[:, None] for d in range(len(offsets))])
-    first_shift = np.stack([np.exp(-2j * (k - k0) * row_offsets[d, 0])[:, None] for d in range(len(offsets))])
+    row_offsets = row_offsets_um(config, np.asarray(offsets))  # (D, Nz)
+    shift = -2j * (k - k0)  # (Nz,): the depth-kernel shift's rate per µm at each wavenumber
+    phase = np.exp(-2j * k0 * (depth_um + row_offsets))[:, :, None]
+    rounding = (row_offsets - nominal[:, None])[:, :, None]
+    powers = np.stack([shift ** m for m in range(_SHIFT_TERMS)])[:, :, None]
+    nominal_shift = np.exp(shift[None, :] * nominal[:, None])[:, :, None]
+    first_shift = np.exp(shift[None, :] * row_offsets[:, :1])[:, :, None]
     for factor in (phase, rounding, powers, nominal_shift, first_shift):
         factor.flags.writeable = False  # shared by every call
     return phase, rounding, powers, nominal_shift, first_shift
