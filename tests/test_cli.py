@@ -324,6 +324,7 @@ def test_entry_point_runs_as_a_program(tmp_path):
     assert devices and sum(d["default"] for d in devices) == 1
 
 
+@pytest.mark.clock
 def test_invert_prints_a_summary_or_json(tmp_path, capsys, official_data):
     target = official_data / "Scan_Exp2_Layers_A.png"
     # A target score below stage 2's: stage 3 stops at its first exact evaluation.
@@ -509,6 +510,7 @@ def test_npy_that_is_not_a_scan_exits_2_naming_the_file(tmp_path, capsys, offici
     assert sorted(path.name for path in tmp_path.iterdir()) == ["preds", "refs"]  # nothing written
 
 
+@pytest.mark.clock
 def test_invert_budget_starts_with_the_process():
     """``--time-budget`` counts from the process's start: a time before now, by at most the process's age."""
     import psutil
@@ -530,6 +532,7 @@ def test_invert_refuses_a_bad_field_schedule_before_any_work(tmp_path, capsys, o
     assert not output.exists()
 
 
+@pytest.mark.clock
 def test_the_process_age_is_the_processes_own_to_the_hundredth():
     """A budget counts from the process's start: the age a child reports lies between the time it slept
     and the time its parent saw it run (psutil's creation time, with Linux's whole-second boot time, was up

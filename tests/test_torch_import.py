@@ -76,6 +76,7 @@ def test_a_process_times_its_first_import_for_the_next(tmp_path):
     assert 0 < kept[f"{sys.executable} torch {metadata.version('torch')}"][0] < 60
 
 
+@pytest.mark.clock
 def test_a_budget_leaves_out_what_a_slow_torch_import_would_push_past_it(real_like_target, tmp_path):
     """Where torch took 100 s to import before, a 20 s budget on a real-like target runs neither the aim step
     nor any score (each needs torch) and never imports it; the phantom is written and the process ends in time."""
@@ -116,6 +117,7 @@ def test_a_background_import_is_waited_for_and_its_time_kept_apart(tmp_path):
     assert 0 < kept[f"{sys.executable} torch {version} {BACKGROUND}"][0] < 60
 
 
+@pytest.mark.clock
 def test_a_running_background_import_is_estimated_by_what_is_left_of_its_time(without_torch, monkeypatch):
     monkeypatch.setattr(metadata, "version", lambda name: "2.13.0+cpu")
     (without_torch / CACHE_FILE).write_text(json.dumps({f"{sys.executable} torch 2.13.0+cpu background": [3.0],
@@ -134,6 +136,7 @@ def test_a_running_background_import_is_estimated_by_what_is_left_of_its_time(wi
     assert torch_import_s() == 1.0  # the foreground's own figure
 
 
+@pytest.mark.clock
 def test_an_invert_run_begins_the_import_where_it_will_need_torch_and_the_budget_allows(real_like_target, tmp_path):
     """A real-like target (levels the scanner never writes) needs torch for its aim and score: the run
     imports it on a thread from its start, and scores; not when less than PREFETCH_TORCH_MIN_S would be left
@@ -141,7 +144,10 @@ def test_an_invert_run_begins_the_import_where_it_will_need_torch_and_the_budget
     code = ("import json, sys\n"
             "from octcl.host.pipeline.invert import invert\n"
             "from octcl import torch_import\n"
-            f"result = invert({str(real_like_target)!r}, sys.argv[1], time_budget_s=float(sys.argv[2]))\n"
+            # A short stage 1 without the aim, and a stage 3 that stops at its first score: what is tested is the
+            # import's start and the score, not the stages' length
+            f"result = invert({str(real_like_target)!r}, sys.argv[1], time_budget_s=float(sys.argv[2]),"
+            " field_schedule='display:20,project:20,hinge:20', target_score=0.5)\n"
             "print(json.dumps([bool(torch_import._background), result.score is not None]))\n")
     version = metadata.version("torch")
     cache = cache_with_built_programs(tmp_path / "cache")  # one for both runs

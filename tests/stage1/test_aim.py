@@ -109,6 +109,7 @@ def test_rounds_run_until_the_search_is_done_and_keep_each_gain(target):
     assert len(done.kept) == 2 and done.kept[0] is start and not np.array_equal(done.kept[1], start)
 
 
+@pytest.mark.clock
 def test_a_deadline_the_first_round_cannot_meet_leaves_the_rounds_out(target):
     import time
 

@@ -33,6 +33,7 @@ def test_fit_field_reduces_the_loss(uniform_levels):
     assert np.abs(fit.display - fit.target_display).mean() < 0.02
 
 
+@pytest.mark.clock
 def test_fit_field_respects_the_time_budget(uniform_levels):
     start = time.perf_counter()
     fit = fit_field(uniform_levels, iterations=10**6, time_budget_s=1.0, threads=1)
@@ -43,6 +44,7 @@ def test_fit_field_respects_the_time_budget(uniform_levels):
     assert elapsed < 1.0 + 0.5
 
 
+@pytest.mark.clock
 def test_fit_field_times_its_thread_choices(uniform_levels):
     import torch
 
@@ -65,6 +67,7 @@ def test_fit_field_refuses_a_target_of_the_wrong_size():
         fit_field(np.zeros((10, 20), dtype=np.uint8))
 
 
+@pytest.mark.clock
 def test_fit_field_without_a_budget_takes_no_decision_from_the_clock(uniform_levels, slow_clock):
     import octcl.host.stage1.display as field_module
 
@@ -85,6 +88,7 @@ def test_fit_field_is_the_same_at_every_thread_count(uniform_levels):
     np.testing.assert_array_equal(fits[0].losses, fits[1].losses)
 
 
+@pytest.mark.clock
 def test_fit_field_ahead_of_its_clock_takes_no_decision_from_it(uniform_levels):
     """A budget the steps keep ahead of gives the fit without a budget, bit for bit."""
     unlimited = fit_field(uniform_levels, iterations=30, time_budget_s=None, threads=1)

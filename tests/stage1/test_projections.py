@@ -37,6 +37,7 @@ def test_retrieve_field_stays_bounded_on_an_official_scan(official_data):
     assert fit.identical > 0.5
 
 
+@pytest.mark.clock
 def test_retrieve_field_is_deterministic_and_stops_at_its_budget():
     levels = scanner_made_target(1)
     first, second = retrieve_field(levels, iterations=20), retrieve_field(levels, iterations=20)

@@ -75,6 +75,7 @@ def test_a_step_that_loses_pixels_leaves_the_best_field_and_a_solve_stops_at_the
     assert [record.name for record in again.history] == ["project", "hinge"]
 
 
+@pytest.mark.clock
 def test_under_a_budget_each_step_gets_its_share(small_levels):
     """A budget far too small for the steps: the display fit and the projections are cut by the clock (the
     hinge fit may reach the aim first), and the whole ends near the budget."""

@@ -2,6 +2,7 @@
 
 
 import numpy as np
+import pytest
 
 from octcl.host.stage1.solve import default_schedules, display, project
 from octcl.host.stage1.projections import retrieve_field
@@ -43,6 +44,7 @@ def test_linear_start_keeps_the_best_scoring_candidate():
     np.testing.assert_array_equal(found.field, again.field)
 
 
+@pytest.mark.clock
 def test_linear_start_leaves_out_candidates_the_budget_cannot_hold():
     levels = scanner_made_target(2)
     found = linear_start(levels, lambda rendered: float(np.mean(rendered == levels)),

@@ -225,6 +225,7 @@ def test_constraints_hold_after_steps(stage2_phantom, layers_target):
     assert phantom.energy_pct.min() >= math.exp(schedule.min_log_energy) * (1 - 1e-12)
 
 
+@pytest.mark.clock
 def test_deadline_is_respected(stage2_phantom, layers_target):
     schedule = RefineSchedule(phases=(Phase(10_000, 0.01, 0.02),), restarts=(), score_every=5)
     start = time.monotonic()
@@ -420,6 +421,7 @@ class _CostlyScore:
         return self.score(levels)
 
 
+@pytest.mark.clock
 def test_a_score_that_would_end_past_score_by_is_left_out(stage2_phantom, layers_target):
     """``score_by``: where the scorer's own cost ends past it, nothing is scored, nothing refined, and the
     result says so (components None); at its aim the reason is ``ceiling``, elsewhere ``deadline``."""
