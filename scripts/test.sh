@@ -2,8 +2,11 @@
 # Set up .venv (scripts/setup.sh) and run the whole test suite on the CPU OpenCL device, in two runs; the
 # arguments go to both.
 #  1. Every test but those marked ``clock`` in two pytest-xdist workers, one per CI core: much of a test is
-#     single-threaded (imports, subprocesses, NumPy), and two workers took the suite from 1082 to 838-857 s on
-#     two first-generation Zen cores.
+#     single-threaded (imports, subprocesses, NumPy). Each worker's OpenBLAS on one thread: beside the other
+#     worker, OpenBLAS's threads waiting for work held the cores from the OpenCL runtimes' threads (the kernel,
+#     reference and decode tests, tests/device/test_scanner.py tests/test_render.py tests/stage2
+#     tests/stage1/test_operator.py, took 294 s in two workers, 77 s with OPENBLAS_NUM_THREADS=1, on two
+#     first-generation Zen cores).
 #  2. The ``clock`` tests (what a run does against its clock: a budget's share, a score left out when no time
 #     is left) in one process after it. Beside a second worker a machine is half as fast to them: with every
 #     test in two workers, a 10 s run left no time to score in one of three full CI runs (docs/benchmarks.md).
@@ -11,7 +14,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh || exit $?
-.venv/bin/python -m pytest -n 2 -m "not clock" --durations=15 "$@"
+OPENBLAS_NUM_THREADS=1 .venv/bin/python -m pytest -n 2 -m "not clock" --durations=15 "$@"
 rest=$?
 .venv/bin/python -m pytest -m clock --durations=5 "$@"
 clock=$?

@@ -325,7 +325,7 @@ def test_entry_point_runs_as_a_program(tmp_path):
 
 
 @pytest.mark.clock
-def test_invert_prints_a_summary_or_json(tmp_path, capsys, official_data):
+def test_invert_prints_a_summary(tmp_path, capsys, official_data):
     target = official_data / "Scan_Exp2_Layers_A.png"
     # A target score below stage 2's: stage 3 stops at its first exact evaluation.
     status, human, err = run(capsys, "invert", target, "-o", tmp_path / "a.txt", "--time-budget", 20,
@@ -337,7 +337,12 @@ def test_invert_prints_a_summary_or_json(tmp_path, capsys, official_data):
     report = json.loads((tmp_path / "a.json").read_text())
     assert f"{tmp_path / 'a.txt'}: {report['scatterers']:,} scatterers, score {report['score']:.5f}" in human
     assert "MS-SSIM" in human and "report:" in human
-    # The same keys as JSON (a tiny fixed schedule: the keys do not depend on the mode).
+
+
+def test_invert_prints_json_for_one_scan_and_for_a_folder(tmp_path, capsys, official_data):
+    """--json: the keys of one scan's run and of a batch's summary, and a rerun with everything done."""
+    target = official_data / "Scan_Exp2_Layers_A.png"
+    # A tiny fixed schedule: the keys do not depend on the mode.
     status, out, _ = run(capsys, "invert", target, "-o", tmp_path / "b.txt", "--iterations", 1,
                          "--field-iterations", 10, "--stop-rule", "none", "--json")
     assert status == 0 and set(json.loads(out)) == JSON_KEYS["invert"]

@@ -175,7 +175,6 @@ FAKE_WINDOWS = textwrap.dedent('''
 ''')
 
 
-@pytest.mark.clock
 def test_the_package_and_its_main_commands_run_with_the_platform_faked_as_windows(tmp_path):
     _runtime.pyopencl_module()  # the parent's registered implementations, handed to the child: its loader is Linux's
     official = ROOT / "data" / "official"
