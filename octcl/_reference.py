@@ -136,11 +136,13 @@ def spectrum(z_um: np.ndarray, weight: np.ndarray, config: ScannerConfig = DEFAU
         exp(−2i·k·z) = exp(−2i·(k0 + (min(s) + B·α)·δk)·z) · exp(−2i·β·δk·z),
 
     so the sum over scatterers is a matrix product,
-    S[α, β] = Σ_j (w_j·P[α, j])·Q[β, j]: 2·√Nz complex exponentials per
-    scatterer instead of Nz. Each term is within a few ulp of the direct
-    exponential, whose own argument (|2kz| up to about 3·10⁴ rad) carries an
-    error of about 10⁻¹² rad; the official phantoms' reference renders took
-    25 s each on two slow cores with Nz exponentials per scatterer.
+    S[α, β] = Σ_j (w_j·P[α, j])·Q[β, j]: ⌈Nz/B⌉ + B complex exponentials per
+    scatterer (32 for Nz = 256) instead of Nz. Each term is within a few ulp
+    of the direct exponential, whose own argument (|2kz| up to about 1.5·10⁴
+    rad at z = 1536 µm) carries a rounding error of about 2·10⁻¹² rad. The
+    official phantoms' reference renders took 25 s each on two slow cores
+    with Nz exponentials per scatterer, 5.1–5.2 s with these
+    (docs/benchmarks.md, "CI on two slow cores").
     """
     k0, dk, s = wavenumber_grid(config)
     lowest = int(s.min())
@@ -148,7 +150,7 @@ def spectrum(z_um: np.ndarray, weight: np.ndarray, config: ScannerConfig = DEFAU
     block_k = k0 + (lowest + SPECTRUM_BLOCK * np.arange(blocks)) * dk
     offset_k = np.arange(SPECTRUM_BLOCK) * dk
     grid = np.zeros((blocks, SPECTRUM_BLOCK), dtype=np.complex128)
-    for start in range(0, z_um.size, 8192):  # bounded memory: 2·√Nz × 8192 phases at a time
+    for start in range(0, z_um.size, 8192):  # bounded memory: (⌈Nz/B⌉ + B) × 8192 phases at a time
         z = z_um[start:start + 8192]
         outer = np.exp(-2j * np.outer(block_k, z)) * weight[start:start + 8192]
         grid += outer @ np.exp(-2j * np.outer(offset_k, z)).T
