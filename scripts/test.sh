@@ -16,6 +16,7 @@ cd "$(dirname "$0")/.."
 scripts/setup.sh || exit $?
 OPENBLAS_NUM_THREADS=1 .venv/bin/python -m pytest -n 2 -m "not clock" --durations=15 "$@"
 rest=$?
+[ "$rest" -eq 2 ] && exit 2  # interrupted (Ctrl-C): no second run
 .venv/bin/python -m pytest -m clock --durations=5 "$@"
 clock=$?
 # pytest's status 5 is "no test collected": an error only where neither run collected one.
