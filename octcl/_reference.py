@@ -111,7 +111,7 @@ def wavenumber_grid(config: ScannerConfig = DEFAULT_CONFIG) -> tuple[float, floa
     nz = config.depth_pixels
     span_um = config.pixel_size_um * (nz - 1)
     dk = (np.pi / span_um) * nz / (nz + 1)
-    k0 = 2 * np.pi / config.wavelength_um
+    k0 = config.k0_rad_per_um
     q = np.arange(nz)
     return k0, dk, np.where(q <= nz // 2, q, q - nz)
 

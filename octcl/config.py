@@ -83,6 +83,11 @@ class ScannerConfig:
         return self.depth_pixels * self.pixel_size_um
 
     @property
+    def k0_rad_per_um(self) -> float:
+        """k0 = 2π/λ, the centre wavenumber in rad/µm (a scatterer at depth z has the carrier e^{−2i·k0·z})."""
+        return 2 * math.pi / self.wavelength_um
+
+    @property
     def shape(self) -> tuple[int, int]:
         """(rows, columns) of the B-scan: (Nz, Nx)."""
         return (self.depth_pixels, self.a_scans)

@@ -135,7 +135,7 @@ def old_module(tree: Path, name: str):
 def precision(folder: Path, repeats: int, score: bool) -> None:
     """skin_0 written with 6–9 digits: file size, times, depth and phase error, pixels and score."""
     skin = Phantom.skin(0)
-    k0 = 2 * np.pi / DEFAULT_CONFIG.wavelength_um
+    k0 = DEFAULT_CONFIG.k0_rad_per_um
     unrounded_levels = render(skin).levels
     if score:
         from octcl.scorer import score as score_scans

@@ -152,7 +152,7 @@ def _place_children(field: np.ndarray, config: ScannerConfig, max_scatterers: in
     per_child_count = counts[cell]
     row, column = np.divmod(cell, nx)
     centre_um = cell_depths_um(config)[row]
-    k0 = 2 * np.pi / config.wavelength_um
+    k0 = config.k0_rad_per_um
     half_wave_um = config.wavelength_um / 2  # e^{−2i·k0·z} repeats every λ/2
     # δ with −2·k0·(z_n + δ) ≡ θ (mod 2π), taken in [−λ/4, λ/4).
     offset_um = -(np.angle(field.reshape(-1))[cell] + 2 * k0 * centre_um) / (2 * k0)
@@ -178,7 +178,7 @@ def _rendered_field(children: _Children, config: ScannerConfig) -> np.ndarray:
     """
     nz, nx = config.shape
     k = ref.wavenumbers(config)
-    k0 = 2 * np.pi / config.wavelength_um
+    k0 = config.k0_rad_per_um
     offset_um = children.z_um - cell_depths_um(config)[children.row]
     weight = children.amplitude * np.exp(-2j * k0 * children.z_um)
     flat_cell = children.row * nx + children.column

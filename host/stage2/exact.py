@@ -99,7 +99,7 @@ def row_carriers(config: ScannerConfig, offsets: np.ndarray = OFFSETS_IN_WAVELEN
     Near (3π/4, π/4, −π/4, −3π/4) for the offsets (−3, −1, 1, 3)·λ/16; the
     file's rounding of the depths moves them by up to 5e−4 rad.
     """
-    return np.exp(-2j * (2 * np.pi / config.wavelength_um) * row_offsets_um(config, offsets))[:, :, None]
+    return np.exp(-2j * config.k0_rad_per_um * row_offsets_um(config, offsets))[:, :, None]
 
 
 def split_on_carriers(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
@@ -193,7 +193,7 @@ def _rendered_cells_factors(config: ScannerConfig, offsets: tuple) -> tuple:
     ``config`` and ``offsets``: each row's carrier e^{−2i·k0·(z_n + o_{d,n})} (D, Nz, 1), its rounding δ_{d,n}
     (D, Nz, 1), (−2i(k_q − k0))^m (M, Nz, 1), e^{−2i(k_q − k0)·ō_d} and e^{−2i(k_q − k0)·o_{d,0}} (D, Nz, 1)."""
     k = ref.wavenumbers(config)
-    k0 = 2 * np.pi / config.wavelength_um
+    k0 = config.k0_rad_per_um
     depth_um = cell_depths_um(config)[None, :]
     nominal = np.asarray(offsets) * config.wavelength_um
     row_offsets = row_offsets_um(config, np.asarray(offsets))  # (D, Nz)
@@ -220,7 +220,7 @@ def _cell_weights(field: np.ndarray, config: ScannerConfig, offsets: np.ndarray 
 
 def _carrier_free(field: np.ndarray, config: ScannerConfig) -> np.ndarray:
     """Each cell value with its cell's own carrier e^{−2i·k0·z_n} taken out (what the row carriers then carry)."""
-    return field * np.exp(2j * (2 * np.pi / config.wavelength_um) * cell_depths_um(config))[:, None]
+    return field * np.exp(2j * config.k0_rad_per_um * cell_depths_um(config))[:, None]
 
 
 def _pair_carriers(carriers: np.ndarray, pairs: np.ndarray, shape: tuple) -> tuple[np.ndarray, np.ndarray]:

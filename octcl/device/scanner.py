@@ -217,7 +217,7 @@ class ScannerKernels:
         self.ascans_per_bin = max(1, math.ceil(reach_um / config.lateral_pitch_um))
         self.bins = (config.a_scans - 1) // self.ascans_per_bin + 3
         wavenumbers = ref.wavenumbers(config)
-        self.k0 = 2 * np.pi / config.wavelength_um
+        self.k0 = config.k0_rad_per_um
         self.dk = wavenumbers[1] - wavenumbers[0]
         q = np.arange(nz)
         s = np.where(q <= nz // 2, q, q - nz)

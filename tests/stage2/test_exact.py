@@ -38,7 +38,7 @@ def test_rows_sit_at_their_offsets_inside_the_depth_range_on_the_files_grid():
     offsets = row_offsets_um(DEFAULT_CONFIG)
     assert offsets.shape == (4, DEFAULT_CONFIG.depth_pixels)
     assert np.all(offsets[:, 0] >= 0)  # row 0 is at z = 0
-    k0 = 2 * np.pi / DEFAULT_CONFIG.wavelength_um
+    k0 = DEFAULT_CONFIG.k0_rad_per_um
     # Row 0's moved offsets keep their carrier phases, to the file's rounding (≤ 5e−5 µm: 4.8e−4 rad).
     np.testing.assert_allclose(np.exp(-2j * k0 * offsets[:, 0]), np.exp(-2j * k0 * offsets[:, 1]), atol=1e-3)
     depths = row_depths_um(DEFAULT_CONFIG)
