@@ -219,8 +219,7 @@ class ScannerKernels:
         wavenumbers = ref.wavenumbers(config)
         self.k0 = config.k0_rad_per_um
         self.dk = wavenumbers[1] - wavenumbers[0]
-        q = np.arange(nz)
-        s = np.where(q <= nz // 2, q, q - nz)
+        s = ref.wavenumber_grid(config)[2]  # each sample's multiple of δk, FFT order
         transfer = ref.hann_window(nz) / (_spreading_kernel_transform(settings, self.grid, s) * nz)
         transfer[nz // 2] = 0.0
         twiddle = np.exp(-2j * np.pi * np.arange(self.grid // 2) / self.grid)
