@@ -209,7 +209,7 @@ def coupled_sweep(field: np.ndarray, truth_figures: dict, levels: np.ndarray, sc
     weights = decoded_weights(field, config, offsets=tissue.TISSUE_OFFSETS, shadow=shadow)
     # The factor multiplies the median of the lines' own c², the decode's scale when item 4 was measured
     # (docs/benchmarks.md), not SCALE_QUANTILE's.
-    scale_sq = scale_factor * tissue.tissue_scale(weights, ref.shadow_taps(config), 0.5)
+    scale_sq = scale_factor * tissue.tissue_scale((weights**2).sum(axis=0), ref.shadow_taps(config), 0.5)
     ratio = energy_ratio(weights, field)
     target = np.sqrt(scale_sq) * convolve1d(field, lateral_taps(), axis=1, mode="constant")
     bottom = np.zeros(config.a_scans)
@@ -307,8 +307,10 @@ def main(argv=None) -> None:
     print(f"skin {args.skin}: decode c² {decoded.scale**2:.4g}, lines short of light {decoded.short_lines}, pixels at "
           f"their level {np.mean(render(decoded.phantom).levels == levels):.3f}")
     light_mismatch_db(decoded, args.rows)
-    weights = decoded_weights(decoded_field, DEFAULT_CONFIG, offsets=tissue.TISSUE_OFFSETS,
-                              shadow=tissue.local_mean_energy(decoded_field))
+    shadow = tissue.shadow_budget(tissue.local_mean_energy(decoded_field), ref.shadow_taps(DEFAULT_CONFIG),
+                                  decoded.scale**2)  # the decode's own pairs
+    weights = decoded_weights(decoded_field, DEFAULT_CONFIG, offsets=tissue.TISSUE_OFFSETS, shadow=shadow,
+                              diffuse=True)
     for factor in args.scales:
         phantom = phantom_of_rows(top_down_rows(weights, factor * decoded.scale**2), DEFAULT_CONFIG,
                                   tissue.TISSUE_OFFSETS)

@@ -66,6 +66,9 @@ ENERGY_FLOOR_PCT = 1e-36
 #: Least angle between a value and either carrier of the pair :func:`shadow_pairs` gives it: the corrections of
 #: :func:`decoded_weights` then move it within its pair (a pair 90° wide centred on it always has 45°).
 PAIR_MARGIN_RAD = 0.2
+#: Bound of the shadow a line's cells carry on to the next row in :func:`diffused_shadow_pairs`, in units of the
+#: next row's own target: a line past a bright stretch does not go dark to pay it back at once.
+SHADOW_CARRY_LIMIT = 3.0
 #: Carrier offsets of the rows of a cell, in units of λ (module docstring).
 OFFSETS_IN_WAVELENGTHS = np.array([-3.0, -1.0, 1.0, 3.0]) / 16.0
 
@@ -240,18 +243,12 @@ def split_on_pairs(values: np.ndarray, carriers: np.ndarray, pairs: np.ndarray) 
     return weights
 
 
-def shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, steps: int = 3) -> np.ndarray:
-    """For each value, the pair of carriers (a, b), at most ``steps`` apart around the circle and enclosing it,
-    whose non-negative weights have p² + q² nearest ``shadow`` in ratio: (2,) + values.shape carrier indices.
-
-    Two carriers 45° apart carry a value with p² + q² from 0.59 to 1 times |value|², 90° apart from 0.5 to 1,
-    135° apart from 1 to 3.4: the pair sets how much a cell shadows, the value what it shows."""
+def _pair_candidates(values: np.ndarray, carriers: np.ndarray, steps: int):
+    """Every pair of carriers (a, b) at most ``steps`` apart around the circle: yields (a, b, inside, energy), inside
+    where a value lies strictly within the pair's sector (by :data:`PAIR_MARGIN_RAD`), energy its weights' p² + q²."""
     count = carriers.shape[0]
     order = np.argsort(np.angle(carriers).reshape(count, -1)[:, 0])
     value_angles = np.angle(values)
-    best = np.full(values.shape, np.inf)
-    pairs = np.zeros((2,) + values.shape, dtype=np.int64)
-    pairs[0], pairs[1] = order[0], order[1]  # zero values keep this pair, with both weights 0
     for step in range(1, steps + 1):
         for position, first in enumerate(order):
             second = order[(position + step) % count]
@@ -260,26 +257,75 @@ def shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, s
             inside = (within > PAIR_MARGIN_RAD) & (within < np.angle(c2 / c1) % (2 * np.pi) - PAIR_MARGIN_RAD)
             determinant = (np.conj(c1) * c2).imag
             p, q = (np.conj(values) * c2).imag / determinant, (np.conj(c1) * values).imag / determinant
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cost = np.abs(np.log((p**2 + q**2) / shadow))
-            better = inside & (cost < best)
-            best = np.where(better, cost, best)
-            pairs[0] = np.where(better, first, pairs[0])
-            pairs[1] = np.where(better, second, pairs[1])
+            yield first, second, inside, p**2 + q**2
+
+
+def _first_pair(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
+    """The pair zero values keep (both weights 0): the first two carriers around the circle, (2,) + values.shape."""
+    order = np.argsort(np.angle(carriers).reshape(carriers.shape[0], -1)[:, 0])
+    pairs = np.zeros((2,) + values.shape, dtype=np.int64)
+    pairs[0], pairs[1] = order[0], order[1]
+    return pairs
+
+
+def shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, steps: int = 3) -> np.ndarray:
+    """For each value, the pair of carriers (a, b), at most ``steps`` apart around the circle and enclosing it,
+    whose non-negative weights have p² + q² nearest ``shadow`` in ratio: (2,) + values.shape carrier indices.
+
+    Two carriers 45° apart carry a value with p² + q² from 0.59 to 1 times |value|², 90° apart from 0.5 to 1,
+    135° apart from 1 to 3.4: the pair sets how much a cell shadows, the value what it shows."""
+    best = np.full(values.shape, np.inf)
+    pairs = _first_pair(values, carriers)
+    for first, second, inside, energy in _pair_candidates(values, carriers, steps):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cost = np.abs(np.log(energy / shadow))
+        better = inside & (cost < best)
+        best = np.where(better, cost, best)
+        pairs[0] = np.where(better, first, pairs[0])
+        pairs[1] = np.where(better, second, pairs[1])
+    return pairs
+
+
+def diffused_shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, steps: int = 3) -> np.ndarray:
+    """:func:`shadow_pairs` for a grid of values (Nz, Nx), the shadow they miss carried down each A-scan line.
+
+    Row by row from the top, each cell takes the pair whose p² + q² is nearest its target t_n = s_n + r_n, s the
+    ``shadow`` and r what the cells above on its line missed of theirs: r_{n+1} = t_n − (p² + q²)_n, bounded to
+    ±:data:`SHADOW_CARRY_LIMIT`·s_n. A cell's pair reaches 0.59–3.4 times its |value|², so a bright cell shadows
+    more than its share and a dark one less; carried on, the line's shadow summed down to any depth follows
+    Σ s (error diffusion along depth), where :func:`shadow_pairs` leaves each cell's miss where it falls."""
+    candidates = list(_pair_candidates(values, carriers, steps))
+    firsts = np.array([first for first, _, _, _ in candidates])
+    seconds = np.array([second for _, second, _, _ in candidates])
+    inside = np.stack([candidate[2] for candidate in candidates])
+    energy = np.where(inside, np.stack([candidate[3] for candidate in candidates]), np.nan)
+    pairs = _first_pair(values, carriers)
+    carry = np.zeros(values.shape[1:])
+    lines = np.arange(values.shape[1])
+    for row in range(values.shape[0]):
+        target = shadow[row] + carry
+        cost = np.where(inside[:, row], np.abs(energy[:, row] - target), np.inf)
+        chosen = np.argmin(cost, axis=0)
+        found = np.isfinite(cost[chosen, lines])  # a zero value has no pair inside: it keeps the first, at 0
+        pairs[0, row] = np.where(found, firsts[chosen], pairs[0, row])
+        pairs[1, row] = np.where(found, seconds[chosen], pairs[1, row])
+        met = np.where(found, energy[chosen, row, lines], 0.0)
+        limit = SHADOW_CARRY_LIMIT * shadow[row]
+        carry = np.clip(target - met, -limit, limit)
     return pairs
 
 
 def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
                     corrections: int = DECODE_CORRECTIONS, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS,
-                    shadow: np.ndarray | None = None, workers: int = 1) -> np.ndarray:
+                    shadow: np.ndarray | None = None, diffuse: bool = False, workers: int = 1) -> np.ndarray:
     """The rows' amplitudes that render, without shadowing, exactly as the field: (D, Nz, Nx), at the field's scale.
 
     Offset d of cell (n, i) is the row at depth ``row_depths_um(config, offsets)[d, n]``
     on A-scan line i; two of a cell's D are non-zero (module docstring):
     the two carriers enclosing its value or, with ``shadow`` (Nz, Nx), the
     pair whose weights' p² + q² is nearest it (:func:`shadow_pairs`, chosen
-    once from the field). ``workers``: threads of the depth DFTs (:func:`rendered_cells`; the same result at
-    any count).
+    once from the field; with ``diffuse``, :func:`diffused_shadow_pairs`). ``workers``: threads of the depth
+    DFTs (:func:`rendered_cells`; the same result at any count).
 
     Raises
     ------
@@ -297,19 +343,20 @@ def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     placed = field
     for _ in range(corrections + 1):
         if shadow is not None:  # chosen from the field; again for a value a correction moved out of its pair
-            pairs = _kept_pairs(placed, config, offsets, shadow, pairs)
+            pairs = _kept_pairs(placed, config, offsets, shadow, pairs, diffuse)
         weights = _cell_weights(placed, config, offsets, pairs)
         placed = placed + (field - rendered_cells(weights, config, offsets, workers))
     return weights
 
 
-def _kept_pairs(placed, config, offsets, shadow, pairs):
+def _kept_pairs(placed, config, offsets, shadow, pairs, diffuse: bool = False):
     """``pairs``, with :func:`shadow_pairs` for the cells of ``placed`` whose value is not strictly inside its
     pair (every cell at first); chosen again only for the cells that left their pair: the choice is per cell,
-    so these are the pairs a choice over every cell gives, for the cost of the few that moved."""
+    so these are the pairs a choice over every cell gives, for the cost of the few that moved. With ``diffuse``
+    the first choice is :func:`diffused_shadow_pairs`; a cell that leaves its pair takes the nearest alone."""
     values, carriers = _carrier_free(placed, config), row_carriers(config, offsets)
     if pairs is None:
-        return shadow_pairs(values, carriers, shadow)
+        return (diffused_shadow_pairs if diffuse else shadow_pairs)(values, carriers, shadow)
     c1, c2 = _pair_carriers(carriers, pairs, values.shape)
     within = np.angle(values / c1) % (2 * np.pi)
     outside = ~((within > 0) & (within < np.angle(c2 / c1) % (2 * np.pi)))
