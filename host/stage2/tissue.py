@@ -112,8 +112,6 @@ MAX_AMPLITUDE_SQ = 1.0
 #: Those lines' own c² were read from the pairs' energies; since each line's shadow follows its budget
 #: (:func:`shadow_budget`) they are read from the local mean of |F|², and 0.95 was not chosen again.
 SCALE_QUANTILE = 0.95
-#: Rows of a tissue decode at most: the task's 295,000 (300,000 the scanner reads).
-MAX_ROWS = 295_000
 #: Passes correcting each line's light at the bottom until its light at the top is 1.
 BOTTOM_PASSES = 8
 #: Rows with signal: the shadow-weighted row intensity above this share of the brightest row's (the display's
@@ -230,20 +228,6 @@ def local_mean_energy(field: np.ndarray) -> np.ndarray:
     return gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
 
 
-def split_cells(field: np.ndarray, budget: np.ndarray, max_rows: int = MAX_ROWS) -> np.ndarray:
-    """Copies of each cell's rows (Nz, Nx): 2 for the cells whose least shadow on one pair, about 0.59·|F|², is
-    furthest over their ``budget``, as many as the rows left under ``max_rows`` allow; 1 elsewhere. Two copies of
-    a row at half its amplitude show as it does and shadow half as much."""
-    copies = np.ones(field.shape)
-    spare_cells = (max_rows - 2 * np.count_nonzero(field)) // 2
-    over = 0.59 * np.abs(field) ** 2 / budget
-    candidates = np.flatnonzero(over > 1)
-    if spare_cells > 0 and candidates.size:
-        chosen = candidates[np.argsort(over.ravel()[candidates])[::-1][:spare_cells]]
-        copies.ravel()[chosen] = 2.0
-    return copies
-
-
 def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, scale_sq: float | None = None,
                   corrections: int = DECODE_CORRECTIONS, scale_quantile: float = SCALE_QUANTILE,
                   workers: int = 1) -> TissueDecode:
@@ -267,15 +251,12 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
     scale_sq = tissue_scale(local_mean, taps, scale_quantile) if scale_sq is None else float(scale_sq)
     if not scale_sq > 0:
         raise ValueError(f"the scale c² must be positive, got {scale_sq!r}")
-    budget = shadow_budget(local_mean, taps, scale_sq)
-    copies = split_cells(field, budget)
     weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, diffuse=True, workers=workers,
-                              shadow=budget * copies)
+                              shadow=shadow_budget(local_mean, taps, scale_sq))
     order = layer_order(config)
     layers = weights.reshape(-1, config.a_scans)[order]  # (L, Nx), depth order
-    layer_copies = np.broadcast_to(copies, weights.shape).reshape(-1, config.a_scans)[order]
     shown_sq = scale_sq * layers**2
-    shadow_sq = convolve1d(shown_sq / layer_copies, taps, axis=1, mode="constant")
+    shadow_sq = convolve1d(shown_sq, taps, axis=1, mode="constant")
     # Each line's light at the bottom: first order 1 − 2c²ΣI, then corrected until its light at the top is 1.
     bottom = np.maximum(1.0 - 2.0 * shadow_sq.sum(axis=0), 0.0)
     for _ in range(BOTTOM_PASSES):
@@ -283,17 +264,11 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
         bottom = np.maximum(bottom + (1.0 - transmission[0] ** 2), 0.0)
     transmission = transmission_from_bottom(shadow_sq, bottom)
     with np.errstate(divide="ignore", invalid="ignore"):
-        amplitude_sq = np.where(transmission > 0, np.minimum(shown_sq / (layer_copies * transmission) ** 2,
-                                                             MAX_AMPLITUDE_SQ), 0.0)
+        amplitude_sq = np.where(transmission > 0, np.minimum(shown_sq / transmission**2, MAX_AMPLITUDE_SQ), 0.0)
     capped = int(np.count_nonzero((amplitude_sq >= MAX_AMPLITUDE_SQ) & (layers > 0)))
     rows = np.empty_like(layers)
     rows[order] = np.sqrt(amplitude_sq)
-    rows = rows.reshape(weights.shape) * (weights > 0)
-    phantom = phantom_of_rows(rows, config, TISSUE_OFFSETS)
-    if (copies > 1).any():  # each split cell's rows a second time, the same rows at the same depths
-        second = phantom_of_rows(rows * (copies > 1), config, TISSUE_OFFSETS)
-        phantom = Phantom(*(np.concatenate([getattr(phantom, name), getattr(second, name)])
-                            for name in ("x_um", "y_um", "z_um", "energy_pct")))
+    phantom = phantom_of_rows(rows.reshape(weights.shape) * (weights > 0), config, TISSUE_OFFSETS)
     return TissueDecode(phantom, float(np.sqrt(scale_sq)), transmission, bottom,
                         int(np.count_nonzero(transmission[0] > 1.0 + 1e-6)), capped)
 
