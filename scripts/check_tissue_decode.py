@@ -63,9 +63,18 @@ the spread of its lines' energies, then
    (:data:`~octcl.host.pipeline.invert.TISSUE_SCHEDULE`, two threads) from
    each decode for that long, and the same figures with its exact score.
 
+6. with ``--stripes``, the decode against the one before each line's
+   shadow had a budget (octcl 0.8.3: each cell's pair nearest the local
+   mean of |F|² unscaled, the scale from the pairs' energies): per decode,
+   the lines short of light, their light at the top T(top) (5, 50, 95 %),
+   the share of pixels at their level, and the stripes: each line's mean
+   error of the rendering's display over rows 0–32 in dB (5, 50, 95 %) and
+   its correlation with −20·log10 T(top).
+
 Example::
 
     python scripts/check_tissue_decode.py --skin 5 --scales 0.0001 0.1 0.3
+    python scripts/check_tissue_decode.py --skin 6 --stripes
     python scripts/check_tissue_decode.py --skin 5 --column-solve --regularisation 1e-3 1e-5
     python scripts/check_tissue_decode.py --skin 5 --coupled-sweep 1 0.3 0.1
     python scripts/check_tissue_decode.py --skin 5 --quantiles 0.5 0.75 0.9 0.95 1 --refine 45
@@ -93,7 +102,7 @@ from octcl.host.stage1.operator import lateral_taps
 from octcl.host.stage2.exact import decoded_weights, phantom_of_rows, rendered_cells
 from octcl.host.pipeline.invert import TISSUE_SCHEDULE
 from octcl.host.pipeline.target import read_target
-from octcl.host.stage1.levels import target_levels
+from octcl.host.stage1.levels import display_of_level, target_levels
 from octcl.host.stage3.loss import ExactScore
 from octcl.host.stage3.refine import refine
 from octcl.phantom import Phantom
@@ -253,6 +262,26 @@ def quantile_choice(field: np.ndarray, truth_figures: dict | None, levels: np.nd
                   flush=True)
 
 
+def stripes(field: np.ndarray, levels: np.ndarray) -> None:
+    """Item 6 of the module docstring."""
+    config, taps = DEFAULT_CONFIG, ref.shadow_taps(DEFAULT_CONFIG)
+    weights = decoded_weights(field, config, offsets=tissue.TISSUE_OFFSETS, shadow=tissue.local_mean_energy(field))
+    nearest = tissue.rows_at_tissue_scale(weights, tissue.tissue_scale((weights**2).sum(axis=0), taps), config)
+    target = display_of_level()[levels]
+    for name, decoded in (("nearest pairs (0.8.3)", nearest), ("budget", tissue.decode_tissue(field, config))):
+        rendering = render(decoded.phantom)
+        shown = (levels > 0) & (rendering.display > 0)
+        error_db = np.where(shown, ref.DISPLAY_RANGE_DB * (rendering.display - target), np.nan)[:32]
+        counted = shown[:32].any(axis=0)
+        per_line = np.nanmean(error_db[:, counted], axis=0)
+        top_db = -20 * np.log10(decoded.transmission[0, counted])
+        print(f"{name}: lines short of light {decoded.short_lines}, T(top) (5, 50, 95 %) "
+              f"{np.round(np.quantile(decoded.transmission[0], [0.05, 0.5, 0.95]), 3)}, pixels at their level "
+              f"{np.mean(rendering.levels == levels):.3f}, each line's error over rows 0–32 (5, 50, 95 %) "
+              f"{np.round(np.quantile(per_line, [0.05, 0.5, 0.95]), 2)} dB, correlation with −20·log10 T(top) "
+              f"{np.corrcoef(per_line, top_db)[0, 1]:.2f}")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--skin", type=int, default=5, help="skin phantom seed (default 5)")
@@ -266,6 +295,7 @@ def main(argv=None) -> None:
                         help="item 4 of the description, instead of 1–2, at each FACTOR times the median of the "
                              "lines' own c² (default 1)")
     parser.add_argument("--quantiles", nargs="+", type=float, help="item 5 of the description, instead of 1–2")
+    parser.add_argument("--stripes", action="store_true", help="item 6 of the description, instead of 1–2")
     parser.add_argument("--refine", type=float, metavar="SECONDS", help="with --quantiles: stage 3 from each decode")
     parser.add_argument("--stage1-field", action="store_true",
                         help="items 1, 2 and 5 decode stage 1's own field, not its least-norm twin (the tissue "
@@ -286,6 +316,9 @@ def main(argv=None) -> None:
     if args.quantiles:
         truth_figures = None if truth is None else tissue_figures(truth, levels)
         quantile_choice(decoded_field, truth_figures, levels, args.quantiles, args.refine)
+        return
+    if args.stripes:
+        stripes(decoded_field, levels)
         return
     if args.coupled_sweep is not None:
         truth_figures = tissue_figures(truth, levels)

@@ -253,6 +253,14 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
         raise ValueError(f"the scale c² must be positive, got {scale_sq!r}")
     weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, diffuse=True, workers=workers,
                               shadow=shadow_budget(local_mean, taps, scale_sq))
+    return rows_at_tissue_scale(weights, scale_sq, config)
+
+
+def rows_at_tissue_scale(weights: np.ndarray, scale_sq: float, config: ScannerConfig = DEFAULT_CONFIG) -> TissueDecode:
+    """The exact decode's rows ``weights`` (D, Nz, Nx, at the field's scale, :data:`TISSUE_OFFSETS`) shown at the
+    scale c² = ``scale_sq``, each divided by the light its line has left at its layer, integrated from the bottom
+    with each line's light at the bottom corrected until its light at the top is 1 (module docstring)."""
+    taps = ref.shadow_taps(config)
     order = layer_order(config)
     layers = weights.reshape(-1, config.a_scans)[order]  # (L, Nx), depth order
     shown_sq = scale_sq * layers**2
@@ -274,4 +282,5 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
 
 
 __all__ = ["MAX_AMPLITUDE_SQ", "SCALE_QUANTILE", "TissueDecode", "decode_tissue", "layer_order", "light_above",
-           "local_mean_energy", "shadow_budget", "tail_sums", "tissue_scale", "transmission_from_bottom"]
+           "local_mean_energy", "rows_at_tissue_scale", "shadow_budget", "tail_sums", "tissue_scale",
+           "transmission_from_bottom"]
