@@ -243,11 +243,15 @@ def split_on_pairs(values: np.ndarray, carriers: np.ndarray, pairs: np.ndarray) 
     return weights
 
 
+def _carrier_order(carriers: np.ndarray) -> np.ndarray:
+    """The carriers' indices in order around the circle (by the angle of their first row's value)."""
+    return np.argsort(np.angle(carriers).reshape(carriers.shape[0], -1)[:, 0])
+
+
 def _pair_candidates(values: np.ndarray, carriers: np.ndarray, steps: int):
     """Every pair of carriers (a, b) at most ``steps`` apart around the circle: yields (a, b, inside, energy), inside
     where a value lies strictly within the pair's sector (by :data:`PAIR_MARGIN_RAD`), energy its weights' p² + q²."""
-    count = carriers.shape[0]
-    order = np.argsort(np.angle(carriers).reshape(count, -1)[:, 0])
+    count, order = carriers.shape[0], _carrier_order(carriers)
     value_angles = np.angle(values)
     for step in range(1, steps + 1):
         for position, first in enumerate(order):
@@ -262,7 +266,7 @@ def _pair_candidates(values: np.ndarray, carriers: np.ndarray, steps: int):
 
 def _first_pair(values: np.ndarray, carriers: np.ndarray) -> np.ndarray:
     """The pair zero values keep (both weights 0): the first two carriers around the circle, (2,) + values.shape."""
-    order = np.argsort(np.angle(carriers).reshape(carriers.shape[0], -1)[:, 0])
+    order = _carrier_order(carriers)
     pairs = np.zeros((2,) + values.shape, dtype=np.int64)
     pairs[0], pairs[1] = order[0], order[1]
     return pairs

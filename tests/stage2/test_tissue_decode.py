@@ -2,15 +2,15 @@
 
 import numpy as np
 import pytest
-from scipy.ndimage import convolve1d, gaussian_filter
+from scipy.ndimage import convolve1d
 
 from octcl.config import DEFAULT_CONFIG
 from octcl.host.stage1.operator import FieldOperator
 from octcl.host.stage2.exact import decoded_weights, phantom_of_rows, rendered_cells
 from octcl import _reference as ref
-from octcl.host.stage2.tissue import (SHADOW_SMOOTHING, TISSUE_OFFSETS, decode_tissue, light_above,
-                                      local_mean_energy, rows_at_tissue_scale, shadow_budget, tail_sums,
-                                      tissue_scale, transmission_from_bottom)
+from octcl.host.stage2.tissue import (TISSUE_OFFSETS, decode_tissue, light_above, local_mean_energy,
+                                      rows_at_tissue_scale, shadow_budget, tail_sums, tissue_scale,
+                                      transmission_from_bottom)
 from octcl.phantom import Phantom
 from conftest import SMALL_SCANNER as SMALL, random_field, reference_a_scans
 
@@ -43,7 +43,7 @@ def test_shadow_pairs_keep_the_decode_exact_and_its_shadow_nearer_the_local_mean
     """Eight carriers, each cell on the pair whose p² + q² is nearest the local mean of |F|²: the rows still
     render the field exactly, and their shadow scatters less about that mean than on the adjacent pair."""
     field = random_field(DEFAULT_CONFIG, 2)
-    local_mean = gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
+    local_mean = local_mean_energy(field)
     paired = decoded_weights(field, DEFAULT_CONFIG, offsets=TISSUE_OFFSETS, shadow=local_mean)
     adjacent = decoded_weights(field, DEFAULT_CONFIG, offsets=TISSUE_OFFSETS)
     for weights in (paired, adjacent):
@@ -63,7 +63,7 @@ def test_diffused_pairs_keep_the_decode_exact_and_each_lines_shadow_on_its_sum()
     nearest pair (on this field: the median line's total miss 3.5 % against 12 %, the largest running miss 22 %
     of the line's sum against 38 %)."""
     field = random_field(DEFAULT_CONFIG, 2)
-    local_mean = gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
+    local_mean = local_mean_energy(field)
     misses = {}
     for diffuse in (False, True):
         weights = decoded_weights(field, DEFAULT_CONFIG, offsets=TISSUE_OFFSETS, shadow=local_mean, diffuse=diffuse)
@@ -79,7 +79,7 @@ def test_the_shadow_budget_spends_each_lines_light():
     """Each line's target keeps the local mean's profile in depth, scaled so that its shadow-weighted sum is the
     light the scale gives a line less the tail's, 1/(2c²) − tail; a line whose tail takes it all aims at ~0."""
     field = random_field(DEFAULT_CONFIG, 3)
-    local_mean = gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
+    local_mean = local_mean_energy(field)
     taps = ref.shadow_taps(DEFAULT_CONFIG)
     rows_sq = convolve1d(local_mean, taps, axis=1, mode="constant")
     tails = tail_sums(rows_sq)
@@ -130,7 +130,7 @@ def test_one_line_is_compensated_exactly():
 
 def _rows_energy(field):
     """a² of the exact pairs' rows at the field's scale, in the order phantom_of_rows lists them."""
-    local_mean = gaussian_filter(np.abs(field) ** 2, SHADOW_SMOOTHING, mode="nearest")
+    local_mean = local_mean_energy(field)
     weights = decoded_weights(field, SMALL, offsets=TISSUE_OFFSETS, shadow=local_mean)
     return phantom_of_rows(weights, SMALL, TISSUE_OFFSETS).energy_pct / 100
 
