@@ -86,7 +86,7 @@ from scipy.ndimage import convolve1d, gaussian_filter
 from ... import _reference as ref
 from ...config import DEFAULT_CONFIG, ScannerConfig
 from ...phantom import Phantom
-from .exact import DECODE_CORRECTIONS, decoded_weights, phantom_of_rows, row_depths_um
+from .exact import DECODE_CORRECTIONS, DECODE_TOLERANCE, decoded_weights, phantom_of_rows, row_depths_um
 
 #: Carrier offsets of the rows of a cell, in units of λ: eight, 45° apart in carrier phase, so that a cell's
 #: pair can shadow from 0.5 to 3.4 times what it shows (:func:`octcl.host.stage2.exact.shadow_pairs`).
@@ -230,7 +230,7 @@ def local_mean_energy(field: np.ndarray) -> np.ndarray:
 
 def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, scale_sq: float | None = None,
                   corrections: int = DECODE_CORRECTIONS, scale_quantile: float = SCALE_QUANTILE,
-                  workers: int = 1) -> TissueDecode:
+                  workers: int = 1, tolerance: float = DECODE_TOLERANCE) -> TissueDecode:
     """The exact decode's rows at tissue scale (module docstring).
 
     Parameters
@@ -241,18 +241,21 @@ def decode_tissue(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG, sca
     scale_sq : float, optional
         c², the light the rows show relative to the field's scale (default: from the data, :func:`tissue_scale`).
     corrections : int
-        The exact decode's corrections.
+        The exact decode's corrections, at most.
     scale_quantile : float
         The quantile of the lines' own c² that :func:`tissue_scale` takes, where ``scale_sq`` is not given.
     workers : int
         Threads of the exact decode's depth DFTs; the result is the same at any count.
+    tolerance : float
+        The exact decode's residual at which its corrections stop (:func:`~octcl.host.stage2.exact.decoded_weights`;
+        0: all of them).
     """
     taps, local_mean = ref.shadow_taps(config), local_mean_energy(field)
     scale_sq = tissue_scale(local_mean, taps, scale_quantile) if scale_sq is None else float(scale_sq)
     if not scale_sq > 0:
         raise ValueError(f"the scale c² must be positive, got {scale_sq!r}")
     weights = decoded_weights(field, config, corrections, TISSUE_OFFSETS, diffuse=True, workers=workers,
-                              shadow=shadow_budget(local_mean, taps, scale_sq))
+                              shadow=shadow_budget(local_mean, taps, scale_sq), tolerance=tolerance)
     return rows_at_tissue_scale(weights, scale_sq, config)
 
 
