@@ -4,8 +4,10 @@ For each skin seed the scanner's rendering of ``octcl phantom skin --seed N``
 is the target, and so is each ``--real`` file; ``octcl invert --regime tissue --iterations 0`` (stages 1–2
 only) gives the start once; then each schedule (:data:`SCHEDULES`) runs
 stage 3 from that start for ``--seconds``, one after the other in one
-process with the same threads, and the result's exact score and share of
-pixels at the target's level are printed, one JSON row per run:
+process with the same threads, its pixel phase comparing with the aimed
+levels (:func:`octcl.host.stage1.ceiling.aimed_levels`, as the tissue regime's),
+and the result's exact score and shares of pixels at the target's level and
+at the aimed one are printed, one JSON row per run:
 
 - ``full``: the physical regime's schedule (``RefineSchedule()``: every loss
   term from the first step), the tissue regime's before it had its own;
@@ -19,7 +21,12 @@ pixels at the target's level are printed, one JSON row per run:
   phase and the full loss (one run for each length);
 - ``tissue-lpips-every``: the same as ``tissue`` with the LPIPS terms'
   gradient computed every ``--lpips-every`` steps and reused between
-  (:attr:`~octcl.host.stage3.schedule.RefineSchedule.lpips_every`).
+  (:attr:`~octcl.host.stage3.schedule.RefineSchedule.lpips_every`);
+- ``tissue-level``: the same as ``tissue`` with its pixel phase's pixel term
+  replaced by the level term (a ``level`` phase, :mod:`octcl.host.stage3.loss`).
+
+torch is imported before the first schedule's clock starts, so that no
+schedule pays for it.
 
 Example::
 
@@ -29,6 +36,8 @@ Example::
         --pixel-steps 250 120 60 --seconds 20 --out OUT
     python scripts/bench_tissue_refine.py --skin 6 --real ../shared/data/real/orange.png OUT/targets/plain_skin_1.png \
         --schedules tissue tissue-no-lpips tissue-lpips-every --no-lpips-steps 60 150 --seconds 30 --out OUT
+    python scripts/bench_tissue_refine.py --skin 6 7 --real ../shared/data/real/orange.png OUT/targets/plain_skin_0.png \
+        --schedules tissue tissue-level --seconds 16 --out OUT
 """
 
 from __future__ import annotations
@@ -45,13 +54,15 @@ from octcl._io import write_grey_png
 from octcl.config import DEFAULT_CONFIG
 from octcl.host.pipeline.invert import TISSUE_SCHEDULE, invert
 from octcl.host.pipeline.target import read_target, target_scan
+from octcl.host.stage1.ceiling import aimed_levels
 from octcl.host.stage1.levels import target_levels
 from octcl.host.stage3.refine import Phase, RefineSchedule, refine
 from octcl.phantom import Phantom
 from octcl.render import render
+from octcl.torch_import import import_torch
 
 #: Schedules by name (module docstring); ``pixel`` takes its rates from the command line.
-SCHEDULES = ("full", "pixel", "tissue", "tissue-no-lpips", "tissue-lpips-every")
+SCHEDULES = ("full", "pixel", "tissue", "tissue-no-lpips", "tissue-lpips-every", "tissue-level")
 
 
 def schedule_named(name: str, pixel_rates: tuple[float, float], steps: int | None,
@@ -69,6 +80,8 @@ def schedule_named(name: str, pixel_rates: tuple[float, float], steps: int | Non
         return dataclasses.replace(TISSUE_SCHEDULE, phases=(first, middle, *rest))
     if name == "tissue-lpips-every":
         return dataclasses.replace(TISSUE_SCHEDULE, lpips_every=lpips_every)
+    if name == "tissue-level":
+        return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, terms="level"), *rest))
     if steps is None:
         return TISSUE_SCHEDULE
     return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, iterations=steps), *rest))
@@ -77,21 +90,25 @@ def schedule_named(name: str, pixel_rates: tuple[float, float], steps: int | Non
 def bench(name: str, target: Path, names: list[str], seconds: float, pixel_rates, lengths: dict, lpips_every: int,
           out: Path) -> None:
     levels = target_levels(target_scan(read_target(target)), DEFAULT_CONFIG)
+    aim = aimed_levels(levels)  # the tissue regime's, as octcl invert passes it to stage 3
     start_path = out / f"{name}_start.txt"
     if not start_path.exists():  # stages 1–2 once per target and folder
         invert(target, start_path, regime="tissue", iterations=0, threads=2)
     start = Phantom.load(start_path)
+    import_torch()  # before any schedule's clock
     for schedule in names:
         for steps in lengths.get(schedule, [None]):
             began = time.perf_counter()
             result = refine(start, levels, schedule_named(schedule, pixel_rates, steps, lpips_every),
-                            deadline=time.monotonic() + seconds, threads=2)
-            exact_share = float(np.mean(render(result.phantom).levels == levels))
+                            deadline=time.monotonic() + seconds, threads=2, aim=aim)
+            rendered = render(result.phantom).levels
+            exact_share, aim_share = float(np.mean(rendered == levels)), float(np.mean(rendered == aim))
             print(json.dumps({"target": name, "schedule": schedule, "pixel_rates": pixel_rates,
                               "steps_of_phase": steps,
                               "lpips_every": lpips_every if schedule == "tissue-lpips-every" else None, "seconds": round(time.perf_counter() - began, 1),
                               "steps": result.iterations, "start_score": result.initial_components["mean"],
-                              "score": result.components["mean"], "exact_share": exact_share}), flush=True)
+                              "score": result.components["mean"], "exact_share": exact_share,
+                              "aim_share": aim_share}), flush=True)
 
 
 def main(argv=None) -> None:

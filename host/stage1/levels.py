@@ -55,17 +55,16 @@ def target_levels(target, config: ScannerConfig | None = None) -> np.ndarray:
     return np.clip(np.rint(target * 255.0), 0, 255).astype(np.uint8)
 
 
-def display_of_level() -> np.ndarray:
-    """D at the centre of the display interval of each 8-bit level.
+def display_interval_of_level() -> tuple[np.ndarray, np.ndarray]:
+    """The display interval [low, high) of each 8-bit level: two arrays of 256.
 
     The scanner writes level GREY_LUT[c] for colour index c = min(⌊256·D⌋, 255),
     so a level L comes from D in the union of [c/256, (c+1)/256) over the
     indices c with GREY_LUT[c] = L (two indices for the 24 levels below a
-    truncated index). The estimate is the centre of that union. The 24
-    truncated levels themselves never come out of the scanner; a target made
-    otherwise (a real scan quantised plainly) has them, and for those the
-    plain quantiser's interval [L/256, (L+1)/256) is used. Level 0 is handled
-    by :func:`target_display`.
+    truncated index). The 24 truncated levels themselves never come out of
+    the scanner; a target made otherwise (a real scan quantised plainly) has
+    them, and for those the plain quantiser's interval [L/256, (L+1)/256) is
+    given.
     """
     index = np.arange(256)
     low = index / 256.0
@@ -76,6 +75,15 @@ def display_of_level() -> np.ndarray:
     high[produced] = -np.inf
     np.minimum.at(low, GREY_LUT, index / 256.0)
     np.maximum.at(high, GREY_LUT, (index + 1) / 256.0)
+    return low, high
+
+
+def display_of_level() -> np.ndarray:
+    """D at the centre of the display interval of each 8-bit level (:func:`display_interval_of_level`).
+
+    Level 0 is handled by :func:`target_display`.
+    """
+    low, high = display_interval_of_level()
     return 0.5 * (low + high)
 
 

@@ -18,6 +18,7 @@ display D ∈ [0, 1] of the rendering:
 3. The terms, each a mean over the pixels (weights in :class:`LossWeights`)::
 
        pixel          mean|P − T| + mean (P − T)²
+       level          mean e + mean e²,  e = max(|P̃ − C| − f·H, 0)
        sc_l1          mean|SC(P) − SC(T)|
        oac_l1         mean|OAC(P) − OAC(T)|
        oac_lpips      LPIPS(OAC(T), OAC(P))
@@ -28,6 +29,19 @@ display D ∈ [0, 1] of the rendering:
        rsc_lpips      LPIPS(RSC(T), RSC(P))
 
    A term with weight 0 is not computed at all (LPIPS costs most).
+
+   ``level`` is octcl's, the term of a ``level`` phase
+   (:meth:`LossWeights.for_terms`), not the published method's: P̃ = 256·D/255
+   unquantised, C and H the centre and half-width of the display interval of
+   the pixel's target level
+   (:func:`octcl.host.stage1.levels.display_interval_of_level`, in the same
+   units), f = :data:`LEVEL_MARGIN`; at level 0 it is |P − T|. The pixel term
+   on P is 0 wherever the level is right, however near the interval's edge
+   the display lies, so the next step's moves of the scatterers that pixel
+   shares with others knock it off again; the level term keeps pulling the
+   display into the middle of its interval. Measured in the tissue regime's
+   stage 3 (:data:`LEVEL_MARGIN`), it puts more pixels at their level, and
+   scores no higher: the tissue regime's pixel phase keeps the pixel term.
 
 LPIPS (Zhang et al., CVPR 2018) compares unit-normalised AlexNet features;
 the target's features do not change during an inversion, so they are
@@ -71,12 +85,19 @@ from octcl._lpips import lpips_network, lpips_taps
 from octcl._msssim import msssim_torch
 from octcl.maps import map_levels, maps_torch
 
+from ..stage1.levels import display_interval_of_level
 from .schedule import LPIPS_TERMS, LossWeights
 from ..pipeline.target import target_scan, target_struct_for_metrics
 
 #: ∂P/∂D of the straight-through quantiser: P = floor(256·D)/255 on average.
 QUANTISER_SLOPE = 256.0 / 255.0
 _MSSSIM_TERMS = {"struct_msssim": "Struct", "oac_msssim": "OAC"}
+#: The level term's margin f, a share of each level's half-width within which a display is not pulled further
+#: towards the interval's centre (module docstring). Measured on two cores from the tissue decode's start, 16 s
+#: of the tissue regime's schedule with its pixel phase's term replaced (skin seeds 6 and 7, orange.png; a scratch
+#: patch): f = 0.6 and 0.8 put 90.3 % and 89.5 % of skin 6's pixels at their level, and orange.png scored 0.99911
+#: and 0.99884 (docs/benchmarks.md, "A level term for the pixel phase: measured, not kept").
+LEVEL_MARGIN = 0.6
 
 
 @contextlib.contextmanager
@@ -156,6 +177,11 @@ class DisplayLoss:
             with _onednn_off():
                 target = torch.as_tensor(np.asarray(target_scan), dtype=dtype)
                 self.target = {"Struct": target, **maps_torch(target)}
+            levels = np.rint(np.asarray(target_scan, dtype=np.float64) * 255.0).astype(np.intp)
+            low, high = display_interval_of_level()
+            self._level_goal = (torch.as_tensor(QUANTISER_SLOPE * (low + high)[levels] / 2, dtype=dtype),
+                                torch.as_tensor(LEVEL_MARGIN * QUANTISER_SLOPE * (high - low)[levels] / 2, dtype=dtype),
+                                torch.as_tensor(levels == 0))
             # AlexNet with oneDNN, as in __call__, and on one thread: the loss must not depend on the
             # thread count at which it was built. Without oneDNN, layers 2–5 differed between 1 and 2
             # threads on an EPYC; with it they did not there, but did on a first-generation Zen
@@ -180,15 +206,20 @@ class DisplayLoss:
     @staticmethod
     def _images(scan: torch.Tensor, wanted: set[str]) -> dict[str, torch.Tensor]:
         """The scan and, if a wanted term needs them, its OAC, SC and RSC maps."""
-        needs_maps = wanted - {"pixel", "struct_msssim", "struct_lpips"}
+        needs_maps = wanted - {"pixel", "level", "struct_msssim", "struct_lpips"}
         return {"Struct": scan, **(maps_torch(scan) if needs_maps else {})}
 
-    def _pixel_terms(self, images: dict, wanted: set[str]) -> dict[str, torch.Tensor]:
-        """The wanted terms other than LPIPS: pixel, L1 and MS-SSIM."""
+    def _pixel_terms(self, images: dict, wanted: set[str], unquantised: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The wanted terms other than LPIPS: pixel, level, L1 and MS-SSIM; ``unquantised`` is P̃ (module
+        docstring), the scan before the quantiser."""
         target, terms = self.target, {}
+        difference = images["Struct"] - target["Struct"]
         if "pixel" in wanted:
-            difference = images["Struct"] - target["Struct"]
             terms["pixel"] = difference.abs().mean() + (difference**2).mean()
+        if "level" in wanted:
+            centre, margin, floor = self._level_goal
+            excess = torch.where(floor, difference.abs(), torch.relu((unquantised - centre).abs() - margin))
+            terms["level"] = excess.mean() + (excess**2).mean()
         for name, map_name in (("sc_l1", "SC"), ("oac_l1", "OAC")):
             if name in wanted:
                 terms[name] = (images[map_name] - target[map_name]).abs().mean()
@@ -210,13 +241,13 @@ class DisplayLoss:
         Parameters
         ----------
         scan : (Nz, Nx) tensor
-            The grey B-scan P ∈ [0, 1] as the scorer reads it.
+            The grey B-scan P ∈ [0, 1] as the scorer reads it (also the level term's P̃).
         lpips : bool
             Compute the LPIPS terms too.
         """
         wanted = self._wanted(lpips)
         images = self._images(scan, wanted)
-        return {**self._pixel_terms(images, wanted), **self._lpips_terms(images, wanted)}
+        return {**self._pixel_terms(images, wanted, scan), **self._lpips_terms(images, wanted)}
 
     def __call__(self, display: np.ndarray, lpips: str = "compute") -> LossValue:
         """Loss and ∂loss/∂D for a display D (float array, the shape of the target).
@@ -268,7 +299,7 @@ class DisplayLoss:
 
         with _onednn_off():
             images = self._images(scan, wanted)
-            terms = self._pixel_terms(images, wanted)
+            terms = self._pixel_terms(images, wanted, QUANTISER_SLOPE * d)
             loss = weighted_sum(terms)
         value = loss.item()
         if wanted & set(LPIPS_TERMS):  # AlexNet with oneDNN on the maps' copies (Notes)

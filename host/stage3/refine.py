@@ -368,13 +368,13 @@ class _Refiner:
         Building one costs 0.4–0.9 s (the LPIPS network and the target's
         maps and features), so a refinement that the deadline ends after its
         first exact evaluation (``octcl invert --time-budget 10``) builds none.
-        The pixel term alone (``pixel``) compares with :attr:`pixel_scan`: the
+        The pixel or the level term alone (``pixel``, ``level``) compares with :attr:`pixel_scan`: the
         aimed levels where :func:`refine` has them (its docstring).
         """
         if terms not in self._losses:
             from .loss import DisplayLoss
 
-            self._losses[terms] = DisplayLoss(self.pixel_scan if terms == "pixel" else self.scan,
+            self._losses[terms] = DisplayLoss(self.pixel_scan if terms in ("pixel", "level") else self.scan,
                                               self.schedule.loss_weights.for_terms(terms))
         return self._losses[terms]
 

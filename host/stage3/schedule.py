@@ -26,8 +26,9 @@ FALL_LR_FACTOR = 0.5
 LPIPS_TERMS = {"struct_lpips": "Struct", "oac_lpips": "OAC", "sc_lpips": "SC", "rsc_lpips": "RSC"}
 #: What a phase's loss computes (:attr:`Phase.terms`): every weighted term; all but the LPIPS ones (about a third
 #: of the cost); the pixel term alone (no maps, no network: a step of the tissue regime took 0.13–0.14 s where the
-#: full loss's took 0.50–0.56 s, docs/benchmarks.md "Stage 3 in the tissue regime").
-PHASE_TERMS = ("all", "no_lpips", "pixel")
+#: full loss's took 0.50–0.56 s, docs/benchmarks.md "Stage 3 in the tissue regime"); the level term alone (as
+#: cheap; :mod:`octcl.host.stage3.loss`).
+PHASE_TERMS = ("all", "no_lpips", "pixel", "level")
 
 
 def _check_terms(terms) -> None:
@@ -39,7 +40,8 @@ def _check_terms(terms) -> None:
 class LossWeights:
     """Weights of the loss terms (see the module docstring); 0 skips a term.
 
-    The defaults are the published method's weights. LPIPS is most of the
+    The defaults are the published method's weights; ``level`` (0 unless
+    set) is octcl's, the term of a ``level`` phase (:meth:`for_terms`). LPIPS is most of the
     loss's time (one 256×512 image through AlexNet and back per term):
     0.69–0.89 s a refinement step for the full loss on two cores, 0.32–0.36 s
     with OAC's LPIPS only and 0.16–0.20 s without LPIPS (before AlexNet ran
@@ -49,6 +51,7 @@ class LossWeights:
     """
 
     pixel: float = 1.0
+    level: float = 0.0
     sc_l1: float = 0.1
     oac_l1: float = 1.0
     oac_lpips: float = 0.4
@@ -72,10 +75,11 @@ class LossWeights:
 
     def for_terms(self, terms: str) -> "LossWeights":
         """The weights a phase of :attr:`Phase.terms` ``terms`` uses: these, :meth:`without_lpips`, or the pixel
-        term alone at weight 1 (alone, its weight only scales the gradient, which Adam's steps ignore)."""
+        or the level term alone at weight 1 (alone, its weight only scales the gradient, which Adam's steps
+        ignore)."""
         _check_terms(terms)
-        if terms == "pixel":
-            return LossWeights(**{weight.name: float(weight.name == "pixel") for weight in dataclasses.fields(self)})
+        if terms in ("pixel", "level"):
+            return LossWeights(**{weight.name: float(weight.name == terms) for weight in dataclasses.fields(self)})
         return self if terms == "all" else self.without_lpips()
 
 

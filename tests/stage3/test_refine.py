@@ -11,7 +11,8 @@ from scipy.ndimage import gaussian_filter
 
 from octcl._io import GREY_LUT, read_png_rgb, read_scan
 from octcl._reference import quantise
-from octcl.host.stage3.loss import QUANTISER_SLOPE, DisplayLoss, ExactScore, LossWeights, scan_of_levels
+from octcl.host.stage1.levels import display_interval_of_level
+from octcl.host.stage3.loss import LEVEL_MARGIN, QUANTISER_SLOPE, DisplayLoss, ExactScore, LossWeights, scan_of_levels
 from octcl.host.stage3.refine import MAX_ENERGY_PCT, Phase, RefineSchedule, refine, saved_precision
 from octcl.host.pipeline.target import read_target
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
@@ -99,6 +100,30 @@ def test_straight_through_gradient_between_levels(layers_path, uniform_levels):
     display = (uniform_levels + rng.random(uniform_levels.shape)) / 256.0
     finite, straight = _directional_derivatives(loss, display, count=6)
     assert np.linalg.norm(straight - finite) < 0.25 * np.linalg.norm(finite)
+
+
+def test_the_level_term_pulls_each_display_into_the_middle_of_its_level(layers_path):
+    """The level term is 0 within f·H of each level's centre, and positive near its edge where the pixel term,
+    the level being right, is 0; its gradient is the un-quantised term's and points away from the centre."""
+    target = read_scan(layers_path, SCAN_SHAPE)
+    levels = np.rint(target * 255).astype(np.intp)
+    low, high = display_interval_of_level()
+    centre, half = ((low + high) / 2)[levels], ((high - low) / 2)[levels]
+    centre[levels == 0], half[levels == 0] = 0.5 / 256, 0.0  # level 0: the quantised difference (D = 0 keeps it 0)
+    level_only = LossWeights(**{name: float(name == "level") for name in LossWeights.__dataclass_fields__})
+    pixel_only = LossWeights(**{name: float(name == "pixel") for name in LossWeights.__dataclass_fields__})
+    loss, pixel = DisplayLoss(target, level_only, dtype=torch.float64), DisplayLoss(target, pixel_only, torch.float64)
+    lit = levels > 0
+    inside = np.where(lit, centre + 0.5 * LEVEL_MARGIN * half, 0.0)
+    at_inside = loss(inside)
+    assert at_inside.loss == 0.0 and not at_inside.grad_display.any()
+    near_edge = np.where(lit, centre + 0.9 * half, 0.0)
+    # The same levels, so the pixel term does not tell them apart (it is the target file's float32 rounding).
+    assert (quantise(near_edge) == quantise(inside)).all() and pixel(near_edge).loss == pixel(inside).loss < 1e-8
+    at_edge = loss(near_edge)
+    assert at_edge.loss > 0 and (at_edge.grad_display[lit] > 0).all() and not at_edge.grad_display[~lit].any()
+    finite, straight = _directional_derivatives(loss, near_edge, count=4)
+    np.testing.assert_allclose(straight, finite, rtol=0.02, atol=1e-4 * np.abs(finite).max())
 
 
 def test_loss_weights_skip_terms_and_refuse_bad_values(layers_path):
@@ -385,25 +410,32 @@ def test_a_start_at_its_aimed_levels_is_not_refined(stage2_phantom, layers_targe
     assert runs.iterations == 2 and runs.stop_reason == "schedule"
 
 
-def test_the_pixel_phase_compares_with_the_aimed_levels(stage2_phantom, layers_target):
-    """With ``aim``, the pixel term alone compares the rendering with the aimed levels (a level the scanner
-    never writes cannot be reached); without, with the target. At zero learning rates the first step's loss
-    is the term at the start: mean|P − P*| + mean((P − P*)²), P* the aim's scan or the target's."""
+def test_the_pixel_and_level_phases_compare_with_the_aimed_levels(stage2_phantom, layers_target):
+    """With ``aim``, the pixel term alone and the level term alone compare the rendering with the aimed levels
+    (a level the scanner never writes cannot be reached); without, with the target. At zero learning rates the
+    first step's loss is the term at the start: mean|P − P*| + mean((P − P*)²), P* the aim's scan or the
+    target's; and mean e + mean e², e = max(|P̃ − C| − f·H, 0), C and H the centre and half-width of each
+    compared level's interval (e = |P − P*| at level 0)."""
     from octcl.render import render
 
     start = Phantom(*(saved_precision(getattr(stage2_phantom, name)) for name in ("x_um", "y_um", "z_um",
                                                                                   "energy_pct")))
-    rendered = render(start).levels
-    aim = rendered.copy()
+    rendering = render(start)
+    aim = rendering.levels.copy()
     aim[::7, ::5] = np.where(aim[::7, ::5] > 128, GREY_LUT[0], GREY_LUT[255])  # far from the start somewhere
-    schedule = RefineSchedule(phases=(Phase(1, 0.0, 0.0, terms="pixel"),), restarts=(), min_gain=None)
-    scan = scan_of_levels(rendered).astype(np.float64)
+    scan, unquantised = scan_of_levels(rendering.levels).astype(np.float64), QUANTISER_SLOPE * rendering.display
+    low, high = display_interval_of_level()
+    centre, half = QUANTISER_SLOPE * (low + high) / 2, QUANTISER_SLOPE * (high - low) / 2
     for levels_compared, given in ((aim, aim), (np.asarray(layers_target), None)):
-        result = refine(start, layers_target, schedule, threads=1, aim=given)
         difference = scan - scan_of_levels(levels_compared).astype(np.float64)
-        expected = np.abs(difference).mean() + (difference**2).mean()
-        loss = next(entry["loss"] for entry in result.trace if entry["loss"] is not None)
-        assert loss == pytest.approx(expected, rel=1e-5)
+        excess = np.where(levels_compared == 0, np.abs(difference),
+                          np.maximum(np.abs(unquantised - centre[levels_compared])
+                                     - LEVEL_MARGIN * half[levels_compared], 0.0))
+        for terms, error in (("pixel", difference), ("level", excess)):
+            schedule = RefineSchedule(phases=(Phase(1, 0.0, 0.0, terms=terms),), restarts=(), min_gain=None)
+            result = refine(start, layers_target, schedule, threads=1, aim=given)
+            loss = next(entry["loss"] for entry in result.trace if entry["loss"] is not None)
+            assert loss == pytest.approx(np.abs(error).mean() + (error**2).mean(), rel=1e-5), terms
 
 
 class _CostlyScore:
