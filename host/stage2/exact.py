@@ -23,8 +23,9 @@ display's floor (51 dB below the brightest) that residual moves the
 display by 2e−3 dB, a tenth of the margin the field's fit keeps inside each
 level's interval (:data:`octcl.host.stage1.levels.INTERVAL_MARGIN`), and
 on orange.png, two plainly quantised skin renderings and a skin phantom's
-scan the updates stop after 4, not 12 (the decode 0.37–0.47 s against
-0.85–1.05 s on two cores), with every pixel rendered at the level 12 give. In the first row z_0 = 0, so the
+scan each update shrank the residual 15–22 times, and the updates stop
+after 4, not 12 (the decode 0.38–0.46 s against 0.95–1.03 s on two cores),
+with every pixel rendered at the level 12 give (``scripts/bench_decode.py``). In the first row z_0 = 0, so the
 negative offsets there move by λ/2 (same phase, another shift: the
 formula holds with per-row offsets). The result is 2 rows per non-zero
 cell, 262,144 for a full 256×512 grid, at elevation y = 0 and on the
