@@ -97,10 +97,12 @@ FIELD_BUDGET_CAP_S = 45.0
 #: write of its phantom where this machine has measured neither (:func:`write_reserve_s`): the exact decode took
 #: 0.58–0.65 s and the write 0.2–0.3 s on two cores of an AMD EPYC
 #: (``octcl invert`` reports, ``seconds.decode`` and
-#: ``seconds.checkpoint_writes``); 1.05–1.10 s and 0.30–0.33 s on two of the first Zen generation.
+#: ``seconds.checkpoint_writes``); 1.05–1.10 s and 0.30–0.33 s on two of the first Zen generation, where the
+#: decode to its tolerance (octcl 0.8.5, :data:`octcl.host.stage2.exact.DECODE_TOLERANCE`) takes 0.38–0.47 s.
 LINEAR_WRITE_RESERVE_S = 1.0
 #: The same for the tissue regime, whose decode (:func:`octcl.host.stage2.tissue.decode_tissue`) took 1.7 s on two
-#: cores (skin phantom, seed 5; 2.5 s before its pairs were chosen again only where a cell left its own).
+#: cores (skin phantom, seed 5; 2.5 s before its pairs were chosen again only where a cell left its own), and
+#: 1.6–2.2 s to its tolerance on two first-generation Zen cores (``--time-budget 30`` runs, octcl 0.8.5).
 TISSUE_WRITE_RESERVE_S = 4.0
 #: Seconds of the close after the first write where this machine has measured none (:func:`write_reserve_s`):
 #: stage 3's setup and its input's render, when no step follows (0.43–0.68 s on two first-generation Zen cores,
