@@ -287,8 +287,10 @@ def shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, s
     """For each value, the pair of carriers (a, b), at most ``steps`` apart around the circle and enclosing it,
     whose non-negative weights have p² + q² nearest ``shadow`` in ratio: (2,) + values.shape carrier indices.
 
-    Two carriers 45° apart carry a value with p² + q² from 0.59 to 1 times |value|², 90° apart from 0.5 to 1,
-    135° apart from 1 to 3.4: the pair sets how much a cell shadows, the value what it shows."""
+    Carriers α apart carry a value with p² + q² = |value|² − 2pq·cos α: 45° apart from 0.59 to 1 times |value|²
+    (0.59 in the middle of the pair, 0.69 at :data:`PAIR_MARGIN_RAD` from a carrier), 90° apart exactly 1, 135°
+    apart from 1 to 3.4: the pair sets how much a cell shadows, the value what it shows. A value within the margin
+    of a carrier has no 45° pair, and shadows at least what it shows."""
     best = np.full(values.shape, np.inf)
     pairs = _first_pair(values, carriers)
     for first, second, inside, energy in _pair_candidates(values, carriers, steps):

@@ -89,7 +89,7 @@ from ...phantom import Phantom
 from .exact import DECODE_CORRECTIONS, DECODE_TOLERANCE, decoded_weights, phantom_of_rows, row_depths_um
 
 #: Carrier offsets of the rows of a cell, in units of λ: eight, 45° apart in carrier phase, so that a cell's
-#: pair can shadow from 0.5 to 3.4 times what it shows (:func:`octcl.host.stage2.exact.shadow_pairs`).
+#: pair can shadow from 0.59 to 3.4 times what it shows (:func:`octcl.host.stage2.exact.shadow_pairs`).
 TISSUE_OFFSETS = np.arange(-7, 8, 2) / 32.0
 #: σ in rows and lines of the local mean of |F|² that each cell's pair aims its shadow at (a speckle-free n·E).
 #: Wider (4 × 48) changed a skin phantom's decode by little: stripes across lines of 12–14 dB either way
