@@ -172,11 +172,16 @@ class DisplayLoss:
                  dtype: torch.dtype = torch.float32):
         self.weights, self.dtype = weights, dtype
         self._kept_lpips = None  # (weighted sum, its ∂/∂D, the terms) of the last lpips="keep" call
-        self.network = lpips_network()
+        # Only what the weighted terms compare is built: a loss of the pixel or the level term alone took 0.5–0.64 s
+        # to build with the maps, the network and four maps' features it never uses, on two first-generation Zen
+        # cores (the tissue regime's pixel phase builds one).
+        weighted = self._wanted(lpips=True)
+        lpips_maps = [LPIPS_TERMS[name] for name in LPIPS_TERMS if name in weighted]
+        self.network = lpips_network() if lpips_maps else None
         with torch.no_grad():
             with _onednn_off():
                 target = torch.as_tensor(np.asarray(target_scan), dtype=dtype)
-                self.target = {"Struct": target, **maps_torch(target)}
+                self.target = self._images(target, weighted)
             levels = np.rint(np.asarray(target_scan, dtype=np.float64) * 255.0).astype(np.intp)
             low, high = display_interval_of_level()
             self._level_goal = (torch.as_tensor(QUANTISER_SLOPE * (low + high)[levels] / 2, dtype=dtype),
@@ -187,8 +192,7 @@ class DisplayLoss:
             # threads on an EPYC; with it they did not there, but did on a first-generation Zen
             # (tests/stage3/test_refine.py, the loss whatever thread count built it).
             with _one_thread():
-                self._target_taps = {
-                    name: self._taps(self.target[name]) for name in LPIPS_TERMS.values()}
+                self._target_taps = {name: self._taps(self.target[name]) for name in lpips_maps}
 
     def _taps(self, image: torch.Tensor) -> list[torch.Tensor]:
         """LPIPS's unit-normalised AlexNet activations of a grey (H, W) image in [0, 1]."""
