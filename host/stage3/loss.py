@@ -172,9 +172,9 @@ class DisplayLoss:
                  dtype: torch.dtype = torch.float32):
         self.weights, self.dtype = weights, dtype
         self._kept_lpips = None  # (weighted sum, its ∂/∂D, the terms) of the last lpips="keep" call
-        # Only what the weighted terms compare is built: a loss of the pixel or the level term alone took 0.5–0.64 s
-        # to build with the maps, the network and four maps' features it never uses, on two first-generation Zen
-        # cores (the tissue regime's pixel phase builds one).
+        # Only what the weighted terms compare is built: with the maps, the network and four maps' features it never
+        # used, a loss of the pixel or the level term alone took as long to build as the full loss's (the tissue
+        # regime's pixel phase builds one).
         weighted = self._wanted(lpips=True)
         lpips_maps = [LPIPS_TERMS[name] for name in LPIPS_TERMS if name in weighted]
         self.network = lpips_network() if lpips_maps else None

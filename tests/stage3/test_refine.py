@@ -137,6 +137,20 @@ def test_loss_weights_skip_terms_and_refuse_bad_values(layers_path):
         LossWeights(**{name: 0.0 for name in LossWeights.__dataclass_fields__})
 
 
+def test_a_loss_builds_only_what_its_weighted_terms_compare(layers_path, uniform_levels):
+    """A loss of the pixel term alone builds no network and no maps, one without LPIPS no network; each gives its
+    terms as the published loss does."""
+    target = read_scan(layers_path, SCAN_SHAPE)
+    display = (uniform_levels + 0.3) / 256.0
+    full = DisplayLoss(target, LossWeights(), dtype=torch.float64)(display).terms
+    for weights, network, maps in ((LossWeights().for_terms("pixel"), False, False),
+                                   (LossWeights().without_lpips(), False, True), (LossWeights(), True, True)):
+        loss = DisplayLoss(target, weights, dtype=torch.float64)
+        assert (loss.network is not None) == network and ("OAC" in loss.target) == maps
+        value = loss(display)
+        assert value.terms == pytest.approx({name: full[name] for name in value.terms}, rel=1e-12)
+
+
 def test_kept_lpips_gradient_is_reused(layers_path, uniform_levels):
     """``keep`` gives ``compute``'s loss and gradient; ``reuse`` adds the kept LPIPS part to the rest at D."""
     target = read_scan(layers_path, SCAN_SHAPE)
