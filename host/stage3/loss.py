@@ -182,17 +182,22 @@ class DisplayLoss:
             with _onednn_off():
                 target = torch.as_tensor(np.asarray(target_scan), dtype=dtype)
                 self.target = self._images(target, weighted)
-            levels = np.rint(np.asarray(target_scan, dtype=np.float64) * 255.0).astype(np.intp)
-            low, high = display_interval_of_level()
-            self._level_goal = (torch.as_tensor(QUANTISER_SLOPE * (low + high)[levels] / 2, dtype=dtype),
-                                torch.as_tensor(LEVEL_MARGIN * QUANTISER_SLOPE * (high - low)[levels] / 2, dtype=dtype),
-                                torch.as_tensor(levels == 0))
+            self._level_goal = self._level_intervals(target_scan, dtype) if "level" in weighted else None
             # AlexNet with oneDNN, as in __call__, and on one thread: the loss must not depend on the
             # thread count at which it was built. Without oneDNN, layers 2–5 differed between 1 and 2
             # threads on an EPYC; with it they did not there, but did on a first-generation Zen
             # (tests/stage3/test_refine.py, the loss whatever thread count built it).
             with _one_thread():
                 self._target_taps = {name: self._taps(self.target[name]) for name in lpips_maps}
+
+    @staticmethod
+    def _level_intervals(target_scan: np.ndarray, dtype: torch.dtype) -> tuple:
+        """The level term's C, f·H (module docstring) and level-0 mask, per pixel of the target."""
+        levels = np.rint(np.asarray(target_scan, dtype=np.float64) * 255.0).astype(np.intp)
+        low, high = display_interval_of_level()
+        return (torch.as_tensor(QUANTISER_SLOPE * (low + high)[levels] / 2, dtype=dtype),
+                torch.as_tensor(LEVEL_MARGIN * QUANTISER_SLOPE * (high - low)[levels] / 2, dtype=dtype),
+                torch.as_tensor(levels == 0))
 
     def _taps(self, image: torch.Tensor) -> list[torch.Tensor]:
         """LPIPS's unit-normalised AlexNet activations of a grey (H, W) image in [0, 1]."""
@@ -217,7 +222,8 @@ class DisplayLoss:
         """The wanted terms other than LPIPS: pixel, level, L1 and MS-SSIM; ``unquantised`` is P̃ (module
         docstring), the scan before the quantiser."""
         target, terms = self.target, {}
-        difference = images["Struct"] - target["Struct"]
+        if wanted & {"pixel", "level"}:
+            difference = images["Struct"] - target["Struct"]
         if "pixel" in wanted:
             terms["pixel"] = difference.abs().mean() + (difference**2).mean()
         if "level" in wanted:

@@ -127,7 +127,7 @@ from octcl.render import Rendering, display_vjp
 
 from ..optim.adam import Adam
 from ..threads import available_cores
-from .schedule import FALL_LR_FACTOR, MAX_ENERGY_PCT, STOP_RULES, Phase, RefineSchedule
+from .schedule import FALL_LR_FACTOR, MAX_ENERGY_PCT, SINGLE_TERM_PHASES, STOP_RULES, Phase, RefineSchedule
 from ..pipeline.target import target_scan
 
 if TYPE_CHECKING:
@@ -365,16 +365,18 @@ class _Refiner:
     def loss(self, terms: str) -> "DisplayLoss":
         """The loss with a phase's terms (:attr:`~octcl.host.stage3.schedule.Phase.terms`), built at its first use.
 
-        Building one costs 0.4–0.9 s (the LPIPS network and the target's
-        maps and features), so a refinement that the deadline ends after its
-        first exact evaluation (``octcl invert --time-budget 10``) builds none.
-        The pixel or the level term alone (``pixel``, ``level``) compares with :attr:`pixel_scan`: the
-        aimed levels where :func:`refine` has them (its docstring).
+        Building one with LPIPS terms costs 0.4–0.9 s (the network and the
+        target's maps and features; a loss builds only what its weighted terms
+        compare), so a refinement that the deadline ends after its first exact
+        evaluation (``octcl invert --time-budget 10``) builds none. The pixel or
+        the level term alone (:data:`~octcl.host.stage3.schedule.SINGLE_TERM_PHASES`)
+        compares with :attr:`pixel_scan`: the aimed levels where :func:`refine`
+        has them (its docstring).
         """
         if terms not in self._losses:
             from .loss import DisplayLoss
 
-            self._losses[terms] = DisplayLoss(self.pixel_scan if terms in ("pixel", "level") else self.scan,
+            self._losses[terms] = DisplayLoss(self.pixel_scan if terms in SINGLE_TERM_PHASES else self.scan,
                                               self.schedule.loss_weights.for_terms(terms))
         return self._losses[terms]
 

@@ -29,6 +29,8 @@ LPIPS_TERMS = {"struct_lpips": "Struct", "oac_lpips": "OAC", "sc_lpips": "SC", "
 #: full loss's took 0.50–0.56 s, docs/benchmarks.md "Stage 3 in the tissue regime"); the level term alone (as
 #: cheap; :mod:`octcl.host.stage3.loss`).
 PHASE_TERMS = ("all", "no_lpips", "pixel", "level")
+#: The phases whose loss is one term alone, compared with the aimed levels (:meth:`LossWeights.for_terms`).
+SINGLE_TERM_PHASES = ("pixel", "level")
 
 
 def _check_terms(terms) -> None:
@@ -78,7 +80,7 @@ class LossWeights:
         or the level term alone at weight 1 (alone, its weight only scales the gradient, which Adam's steps
         ignore)."""
         _check_terms(terms)
-        if terms in ("pixel", "level"):
+        if terms in SINGLE_TERM_PHASES:
             return LossWeights(**{weight.name: float(weight.name == terms) for weight in dataclasses.fields(self)})
         return self if terms == "all" else self.without_lpips()
 
@@ -294,4 +296,4 @@ class RefineSchedule:
 
 
 __all__ = ["FALL_LR_FACTOR", "LPIPS_TERMS", "LossWeights", "MAX_ENERGY_PCT", "MIN_GAIN", "PHASE_TERMS", "Phase",
-           "RefineSchedule", "STOP_RULES"]
+           "RefineSchedule", "SINGLE_TERM_PHASES", "STOP_RULES"]
