@@ -184,18 +184,29 @@ def transmission_from_bottom(shadow_sq: np.ndarray, bottom_light: np.ndarray) ->
 
 def tail_sums(rows_sq: np.ndarray) -> np.ndarray:
     """Per line, Σ I beyond the data: R(n_last)·r/(1 − r) from the decay of its deepest :data:`TAIL_ROWS` rows with
-    signal (module docstring); ``rows_sq`` (Nz, Nx) is each cell row's shadow-weighted Σ w². 0 without signal."""
+    signal (module docstring); ``rows_sq`` (Nz, Nx) is each cell row's shadow-weighted Σ w². 0 without signal.
+
+    The decay is the least-squares line log R ≈ s·n + b through those rows, all lines at once from its sums
+    (s = (m·Σny − Σn·Σy)/(m·Σn² − (Σn)²), b = (Σy − s·Σn)/m over the m rows, y = log R): a loop of
+    ``np.polyfit`` over 512 lines took 0.09 s, twice a tissue decode.
+    """
     signal = rows_sq > SIGNAL_SHARE * rows_sq.max()
-    tails = np.zeros(rows_sq.shape[1])
-    depth = np.arange(rows_sq.shape[0])
-    for line in range(rows_sq.shape[1]):
-        rows = depth[signal[:, line]][-TAIL_ROWS:]
-        if rows.size < 2:
-            continue
-        fit = np.polyfit(rows, np.log(rows_sq[rows, line]), 1)  # log R ≈ slope·n + intercept
-        ratio = min(float(np.exp(fit[0])), MAX_TAIL_RATIO)
-        tails[line] = np.exp(np.polyval(fit, rows[-1])) * ratio / (1 - ratio)
-    return tails
+    # The deepest TAIL_ROWS rows with signal of each line: those with at most that many signal rows from them down.
+    from_bottom = np.cumsum(signal[::-1], axis=0)[::-1]
+    fitted = signal & (from_bottom <= TAIL_ROWS)
+    count = fitted.sum(axis=0)
+    lines = count >= 2
+    rows = np.arange(rows_sq.shape[0], dtype=float)[:, None]
+    log_rows = np.where(fitted, np.log(np.where(fitted, rows_sq, 1.0)), 0.0)
+    sum_n, sum_nn = (fitted * rows).sum(axis=0), (fitted * rows**2).sum(axis=0)
+    sum_y, sum_ny = log_rows.sum(axis=0), (log_rows * rows).sum(axis=0)
+    m = np.maximum(count, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.where(lines, (m * sum_ny - sum_n * sum_y) / (m * sum_nn - sum_n**2), 0.0)
+    intercept = (sum_y - slope * sum_n) / m
+    last = np.where(lines, rows_sq.shape[0] - 1 - np.argmax(signal[::-1], axis=0), 0)
+    ratio = np.minimum(np.exp(slope), MAX_TAIL_RATIO)
+    return np.where(lines, np.exp(slope * last + intercept) * ratio / (1 - ratio), 0.0)
 
 
 def tissue_scale(intensity: np.ndarray, taps: np.ndarray, quantile: float = SCALE_QUANTILE) -> float:

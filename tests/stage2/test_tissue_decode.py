@@ -76,6 +76,32 @@ def test_diffused_pairs_keep_the_decode_exact_and_each_lines_shadow_on_its_sum()
     assert misses[True].max() < 0.8 * misses[False].max()
 
 
+def test_each_lines_tail_is_the_geometric_sum_of_its_deepest_rows_decay():
+    """Per line: the least-squares line through log R of its deepest TAIL_ROWS rows with signal (np.polyfit, line by
+    line), continued below the last as the sum R_last·r/(1 − r), r capped at MAX_TAIL_RATIO; 0 for a line with
+    fewer than two such rows. Lines with gaps in their signal, a flat one, a single row and none."""
+    from octcl.host.stage2.tissue import MAX_TAIL_RATIO, SIGNAL_SHARE, TAIL_ROWS
+
+    rng = np.random.default_rng(5)
+    depth = np.arange(200)[:, None]
+    rows_sq = np.exp(-depth / rng.uniform(5, 60, 9)) * rng.uniform(0.5, 1.5, (200, 9))
+    rows_sq[120:, 1] = 0.0  # signal ends early
+    rows_sq[::3, 2] = 0.0  # gaps: the deepest rows with signal are not contiguous
+    rows_sq[:, 3] = 0.5  # no decay: the ratio's cap
+    rows_sq[:, 4], rows_sq[7, 4] = 0.0, 0.3  # one row
+    rows_sq[:, 5] = 0.0  # no signal
+    expected = np.zeros(9)
+    for line in range(9):
+        rows = np.flatnonzero(rows_sq[:, line] > SIGNAL_SHARE * rows_sq.max())[-TAIL_ROWS:]
+        if rows.size >= 2:
+            fit = np.polyfit(rows, np.log(rows_sq[rows, line]), 1)
+            ratio = min(np.exp(fit[0]), MAX_TAIL_RATIO)
+            expected[line] = np.exp(np.polyval(fit, rows[-1])) * ratio / (1 - ratio)
+    tails = tail_sums(rows_sq)
+    np.testing.assert_allclose(tails, expected, rtol=1e-9)
+    assert tails[4] == tails[5] == 0 and tails[3] == pytest.approx(0.5 * 99)
+
+
 def test_the_shadow_budget_spends_each_lines_light():
     """Each line's target keeps the local mean's profile in depth, scaled so that its shadow-weighted sum is the
     light the scale gives a line less the tail's, 1/(2c²) − tail; a line whose tail takes it all aims at ~0."""
