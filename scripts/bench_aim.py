@@ -65,10 +65,9 @@ def bench(path: Path, rounds: int, first: bool) -> None:
     for round_ in range(rounds):
         if search.done:
             break
-        batch = search.batch
         (kept, score), seconds = timed(search.step, current, current_score)
         moved = kept is not current
-        rows.append((f"round {round_ + 1} ({batch} pixels)", seconds,
+        rows.append((f"round {round_ + 1}", seconds,
                      f"{'kept' if moved else 'rejected'}, score {score - current_score:+.2e}"))
         current, current_score = kept, score
     if current is not aim:

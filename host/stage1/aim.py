@@ -12,7 +12,7 @@ straight-through quantiser (:class:`octcl.host.stage3.loss.DisplayLoss` with
 A round: with g = ∂loss/∂D at the display D(a₀) of the search's first aim
 a₀ (each level at the centre of its display interval), the change of loss
 from moving pixel p to its other side a'_p is predicted as
-g_p·(D(a'_p) − D(a₀_p)); the ``batch`` pixels of most negative prediction,
+g_p·(D(a'_p) − D(a₀_p)); the :data:`BATCH` pixels of most negative prediction,
 each more than :data:`SPACING_PX` from the others taken and from every
 pixel moved before, move together, and the move is kept only if the exact
 score of the new levels is higher; a moved pixel is not moved again. The
@@ -21,10 +21,18 @@ and the speckle-contrast maps the local spread), so the prediction holds
 for a few pixels at a time, and for pixels apart: on orange.png the first
 16 moved 8.0e−6 nearest the top of the ranking, 10.5e−6 at least 16 pixels
 apart; on a plainly quantised skin rendering (seed 5) 2.9e−6 and 7.6e−6
-(spacings of 0, 4, 8, 16 and 32 pixels measured; 32 lost on orange). The
-search starts at :data:`FIRST_BATCH`, a kept batch stays the same size and
-a rejected one halves, and the search stops after :data:`PATIENCE`
-rejected rounds in a row.
+(spacings of 0, 4, 8, 16 and 32 pixels measured; 32 lost on orange).
+
+Every round moves :data:`BATCH` pixels, and the search stops at the first
+round the exact score rejects. Until octcl 0.8.5 a rejected round halved
+the batch and the search stopped after two rejections in a row: of nine
+real-like targets (``scripts/bench_aim.py --rounds 8``: orange.png, it
+mirrored left to right, it through a gamma of 0.9, plainly quantised skin
+renderings, seeds 0–5; two first-generation EPYC cores) a halved batch
+gained twice, 2.3e−7 and 2.8e−7, and every search paid one exact score
+(0.45–0.48 s) for its second rejection; the gains of the first kept
+rounds were 6.1e−6 to 1.3e−5. The search's rounds, per target, are in
+docs/benchmarks.md ("The aim stops at its first rejected round").
 
 One gradient serves the whole search. A gradient at each kept aim (octcl
 0.8.0) cost 0.75–0.8 s a kept round on two cores, more than the round's
@@ -65,12 +73,10 @@ from ..stage3.schedule import LossWeights
 #: Struct and OAC maps, LPIPS of all four; the loss has no MS-SSIM of SC and RSC), no pixel terms.
 SCORE_WEIGHTS = LossWeights(pixel=0.0, sc_l1=0.0, oac_l1=0.0, oac_lpips=1.0, oac_msssim=1.0, struct_msssim=1.0,
                             struct_lpips=1.0, sc_lpips=1.0, rsc_lpips=1.0)
-#: Pixels moved together in the first round.
-FIRST_BATCH = 16
+#: Pixels a round moves together (module docstring).
+BATCH = 16
 #: Least distance in pixels (along rows or columns) between two pixels a round moves (module docstring).
 SPACING_PX = 16
-#: Rejected rounds in a row after which a search stops (module docstring).
-PATIENCE = 2
 #: Seconds of a search's first round beyond torch's import (:func:`octcl.torch_import.torch_import_s`,
 #: known per machine), before it has a pace: the loss's LPIPS network and target maps, a gradient and an exact
 #: score (2–3 s on two cores with the import's 1.0–1.2 s).
@@ -110,8 +116,7 @@ class AimSearch:
 
     levels: np.ndarray
     score: object
-    batch: int = FIRST_BATCH
-    rejections: int = 0
+    rejected: bool = False
 
     def __post_init__(self):
         self.movable = ~WRITABLE[self.levels]  # only the target's unwritable pixels move
@@ -120,7 +125,7 @@ class AimSearch:
 
     @property
     def done(self) -> bool:
-        return not self.movable.any() or self.rejections >= PATIENCE
+        return self.rejected or not self.movable.any()
 
     def _other_side(self, aim: np.ndarray) -> np.ndarray:
         """Each pixel's level on the other side of its target level: L ± 1 ↔ L ∓ 1."""
@@ -139,7 +144,7 @@ class AimSearch:
         return self._change
 
     def proposal(self, aim: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``aim`` with up to ``batch`` pixels on their other side, and their flat indices: in order of most
+        """``aim`` with up to :data:`BATCH` pixels on their other side, and their flat indices: in order of most
         negative predicted change, each more than :data:`SPACING_PX` from those taken before it and from every
         pixel a kept move moved."""
         change = np.where(self._blocked.ravel(), 0.0, self._predicted_change(aim))
@@ -148,7 +153,7 @@ class AimSearch:
         rows, columns = np.divmod(order, aim.shape[1])
         taken = []
         for index in range(order.size):
-            if len(taken) == self.batch:
+            if len(taken) == BATCH:
                 break
             if all(max(abs(rows[index] - rows[t]), abs(columns[index] - columns[t])) > SPACING_PX for t in taken):
                 taken.append(index)
@@ -164,18 +169,16 @@ class AimSearch:
         """
         proposed, picks = self.proposal(aim)
         if not picks.size:  # nothing predicted to gain
-            self.rejections = PATIENCE
+            self.rejected = True
             return aim, aim_score
         proposed_score = float(self.score(proposed))
         if proposed_score > aim_score:
-            self.rejections = 0
             # A moved pixel is decided, and the gradient no longer predicts its neighbours' moves.
             for row, column in zip(*np.divmod(picks, aim.shape[1])):
                 self._blocked[max(0, row - SPACING_PX):row + SPACING_PX + 1,
                               max(0, column - SPACING_PX):column + SPACING_PX + 1] = True
             return proposed, proposed_score
-        self.rejections += 1
-        self.batch = max(1, self.batch // 2)
+        self.rejected = True
         return aim, aim_score
 
     def rounds(self, aim: np.ndarray, rounds: int, deadline: float | None = None, progress=None) -> AimRounds:
@@ -204,4 +207,4 @@ class AimSearch:
         return AimRounds(kept, taken, clock_steps)
 
 
-__all__ = ["AIM_FIRST_ROUND_S", "AimRounds", "AimSearch", "FIRST_BATCH", "PATIENCE", "SCORE_WEIGHTS", "SPACING_PX"]
+__all__ = ["AIM_FIRST_ROUND_S", "AimRounds", "AimSearch", "BATCH", "SCORE_WEIGHTS", "SPACING_PX"]
