@@ -11,8 +11,8 @@ A-scan i after a layer ℓ of rows (amplitudes a_ℓ on the lines i') is
 
 and the phantom renders as the field does where every row shows c·w:
 a = c·w/T, T the transmission of the row's own line when the light reaches
-its layer (the layers, in depth order, are the cell rows' four depth
-offsets: 1024 of them).
+its layer (the layers, in depth order, are the cell rows' eight depth
+offsets, :data:`TISSUE_OFFSETS`: 2048 of them).
 
 Integrating T from the top, T ← T·(1 − c²w²/T²), is unstable: an error in T
 grows like e^{2μz} through a homogeneous layer. From the bottom it shrinks.
