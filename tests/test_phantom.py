@@ -118,6 +118,29 @@ def test_round_significant_is_percent_e_read_back(digits):
     assert np.array_equal(np.signbit(round_significant(values, digits)), np.signbit(expected))
 
 
+def test_powers_of_ten_beyond_the_exact_ones_round_correctly_where_certain():
+    """m·10^p for |p| > 22, where 10^p is not a float64: the double-double product, where it says it is certain
+    (nearly always), is the float nearest the exact value (fractions), and on tokens of the 1e−36 to 1e−11 % of a
+    linear-regime phantom's energies the parser and round_significant match Python."""
+    from fractions import Fraction
+    from octcl.phantom import _times_power_of_ten_rounded
+
+    rng = np.random.default_rng(11)
+    significand = rng.integers(10**7, 10**8, 4000).astype(np.float64)
+    significand[:8] = [10**7, 10**8 - 1, 12345678, 50000000, 2**26, 2**26 + 1, 99999999, 10**7 + 1]
+    power = rng.integers(-300, 300, 4000)
+    power[:2000] = rng.integers(-60, 60, 2000)
+    values, certain = _times_power_of_ten_rounded(significand, power)
+    assert certain[np.abs(power) <= 22].all() and certain[(np.abs(power) <= 280)].mean() > 0.999
+    for m, p, value in zip(significand[certain].tolist(), power[certain].tolist(), values[certain].tolist()):
+        assert value == float(Fraction(int(m)) * Fraction(10) ** p), (m, p)
+    energies = 10.0 ** rng.uniform(-36, -11, 20000)
+    np.testing.assert_array_equal(round_significant(energies, 8), [float("%.7e" % v) for v in energies.tolist()])
+    rows = np.stack([energies[:5000], energies[5000:10000], energies[10000:15000], energies[15000:]], axis=1)
+    tokens = [[format(v, ".7e") for v in row] for row in rows.tolist()]
+    assert _parse_rows(_format_rows(rows, 8)).tobytes() == np.array([[float(t) for t in row] for row in tokens]).tobytes()
+
+
 @pytest.mark.parametrize("digits", [4, 6, 7, 9, 12, 17])
 def test_save_load_round_trip_reads_back_the_printed_values(tmp_path, digits):
     rng = np.random.default_rng(digits)
