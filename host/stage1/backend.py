@@ -24,12 +24,15 @@ test compares the device with this configuration.
 Reads from the device inside the loops (:class:`OpenCLBackend`):
 
 - display fit: none per step; the losses every
-  :data:`~.display_device.LOSS_READ_EVERY` steps, for ``progress``, which
-  also lets the host's clock see the device's pace;
+  :data:`~.display_device.LOSS_READ_EVERY` steps, for ``progress``;
 - projections: none. Each step is enqueued whole (H, the interval
-  difference, H⁺, the update: 7 kernels); the host waits for the step
-  :data:`PROJECTIONS_IN_FLIGHT` behind the last enqueued before it reads the
-  clock, so a budget is overrun by at most that many steps;
+  difference, H⁺, the update: 7 kernels);
+- in both, the host waits for the step :data:`STEPS_IN_FLIGHT` behind the
+  last enqueued before it reads the clock, so a budget is overrun by at
+  most that many steps. The display fit once read the clock only as it
+  enqueued, and its queue drained at the loss reads: under
+  ``--time-budget 3`` on two first-generation EPYC cores, a display fit
+  given 0.25–0.29 s ran its first 25 steps, 0.51 s;
 - hinge fit: one read of L-BFGS's scalars per line-search trial
   (:func:`octcl.host.optim.lbfgs_device.minimise`), and the field when the
   step's stop rule asks for its levels (:meth:`Backend.levels_of`).
@@ -60,8 +63,8 @@ from .operator_device import FieldKernels
 
 #: The backends by name, the reference last (``octcl invert --backend``).
 BACKENDS = ("opencl", "numpy")
-#: Projection steps enqueued past the one the host waits for before reading the clock.
-PROJECTIONS_IN_FLIGHT = 2
+#: Display-fit and projection steps enqueued past the one the host waits for before reading the clock.
+STEPS_IN_FLIGHT = 2
 #: The device's projections call ``progress`` every this many steps, and after the last.
 PROGRESS_EVERY = 10
 
@@ -203,12 +206,15 @@ class OpenCLBackend:
         return Rendering.from_a_scans(self.operator.apply(self.kernels.to_host(field))).levels
 
     def display_steps(self, goal: DisplayGoal, log_magnitude, phase, schedule, progress):
-        """The display fit's steps enqueued while ``schedule.go_on``, the queue drained every
-        :data:`LOSS_READ_EVERY` steps; returns ρ, θ and the losses."""
+        """The display fit's steps enqueued while ``schedule.go_on``, the clock read after the step
+        :data:`STEPS_IN_FLIGHT` before the last has ended, the losses read every :data:`LOSS_READ_EVERY` steps;
+        returns ρ, θ and the losses."""
         fit = DisplayFitKernels(self.kernels, goal, log_magnitude, phase, schedule.iterations)
-        reported = 0
+        reported, pending = 0, collections.deque()
         while schedule.go_on(fit.steps):
-            fit.step(schedule.rate(fit.steps))
+            pending.append(fit.step(schedule.rate(fit.steps)))
+            if len(pending) > STEPS_IN_FLIGHT:
+                pending.popleft().wait()
             if fit.steps % LOSS_READ_EVERY == 0:
                 reported = report_losses(fit.losses(), reported, schedule.iterations, progress)  # waits for the queue
         losses = fit.losses()
@@ -219,7 +225,7 @@ class OpenCLBackend:
     def project_steps(self, field: np.ndarray, lower, upper, iterations: int, step: float, momentum: float,
                       deadline: float | None, progress):
         """:meth:`NumpyBackend.project_steps` on the device, H⁺ at the shared padding; the clock read after
-        the step :data:`PROJECTIONS_IN_FLIGHT` before the last has ended."""
+        the step :data:`STEPS_IN_FLIGHT` before the last has ended."""
         kernels, ops = self.kernels, self.level_kernels
         lower, upper = ops.bounds_to_device(lower, upper)
         field = kernels.to_device(field)
@@ -235,7 +241,7 @@ class OpenCLBackend:
             kernels.pseudo_inverse(scratch, out=scratch)
             pending.append(ops.momentum_step(field, ahead, scratch, step, momentum))
             taken += 1
-            if len(pending) > PROJECTIONS_IN_FLIGHT:
+            if len(pending) > STEPS_IN_FLIGHT:
                 pending.popleft().wait()
             if progress is not None and taken % PROGRESS_EVERY == 0:
                 progress(taken, iterations)
@@ -274,5 +280,5 @@ def make_backend(name: str, config: ScannerConfig = DEFAULT_CONFIG, threads: int
     raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {name!r}")
 
 
-__all__ = ["BACKENDS", "Backend", "NumpyBackend", "OpenCLBackend", "PROGRESS_EVERY", "PROJECTIONS_IN_FLIGHT",
+__all__ = ["BACKENDS", "Backend", "NumpyBackend", "OpenCLBackend", "PROGRESS_EVERY", "STEPS_IN_FLIGHT",
            "make_backend"]

@@ -129,15 +129,16 @@ class DisplayFitKernels:
                              self.stats.data, self.brightest.data, self.a_scan_grad.data)
         ops.adjoint(self.a_scan_grad, self.field_grad)
 
-    def step(self, lr: float) -> None:
-        """Enqueue one step at learning rate ``lr`` (the loss of the field before it goes to ``losses``)."""
+    def step(self, lr: float):
+        """Enqueue one step at learning rate ``lr`` (the loss of the field before it goes to ``losses``); returns
+        the event of its last kernel."""
         self.gradient()
         self.steps += 1
         beta1, beta2, _ = Adam.DEFAULTS
         real = self.ops.real
-        self._adam(self.ops.queue, (self.field.size,), None, self.field_grad.data, self.field.data,
-                   self.log_magnitude.data, self.phase.data, *(moment.data for moment in self.moments),
-                   self.stats.data, real(lr), real(1 - beta1**self.steps), real(1 - beta2**self.steps))
+        return self._adam(self.ops.queue, (self.field.size,), None, self.field_grad.data, self.field.data,
+                          self.log_magnitude.data, self.phase.data, *(moment.data for moment in self.moments),
+                          self.stats.data, real(lr), real(1 - beta1**self.steps), real(1 - beta2**self.steps))
 
     def losses(self) -> np.ndarray:
         """The losses of the steps so far (reads the device)."""

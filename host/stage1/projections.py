@@ -126,7 +126,7 @@ def retrieve_field(target, config: ScannerConfig = DEFAULT_CONFIG, iterations: i
     backend : NumpyBackend or OpenCLBackend, optional
         Where the steps run (:mod:`octcl.host.stage1.backend`); default ``NumpyBackend(config, workers)``.
         On a device, ``time_budget_s`` is checked after the step
-        :data:`~octcl.host.stage1.backend.PROJECTIONS_IN_FLIGHT` before the last enqueued has ended, and
+        :data:`~octcl.host.stage1.backend.STEPS_IN_FLIGHT` before the last enqueued has ended, and
         ``progress`` is called every :data:`~octcl.host.stage1.backend.PROGRESS_EVERY` steps.
 
     Returns
