@@ -553,10 +553,12 @@ def _times_power_of_ten_rounded(values: np.ndarray, power: np.ndarray) -> tuple[
     midpoint between neighbouring floats, |t| = ulp(s)/2) lies between them: certain where |t| stays 2^−96·|s|
     away from ulp(s)/2, s is not a power of two (whose lower neighbour is nearer) and the result is a normal
     float within 1e±290; the uncertain ones are for Python's text to round (none of 262,144 random values of
-    1e−36 to 1e−10 at 8 digits). A phantom decoded in the linear regime has energies of 1e−11 % to 1e−36 %: all
-    through Python, :func:`round_significant` took 0.45 s for 262,144 of them, this way 0.05 s (two
-    first-generation EPYC cores; stage 3 rounds its input as the file holds it). ``tests/test_phantom.py``
-    compares the products with exact fractions.
+    1e−36 to 1e−10 at 8 digits). A phantom decoded in the linear regime has energies of 1e−36 % to 1e−11 %, most
+    beyond 1e−15 (|p| > 22 at 8 digits), which stage 3 rounds as the file holds them and a reader reads back: on
+    two first-generation EPYC cores :func:`round_significant` of 262,144 values spread over 1e−36 to 1e−10 took
+    0.45 s through Python and 0.057 s this way; of orange.png's decoded phantom (1.5e−26 to 3.6e−11 %) 0.16 and
+    0.02 s, and its ``Phantom.load`` 0.25 and 0.15 s (docs/benchmarks.md, "Phantom values read without
+    Python"). ``tests/test_phantom.py`` compares the products with exact fractions.
     """
     rounded = _times_power_of_ten(values, power)
     large = np.abs(power) > _EXACT_POWER
