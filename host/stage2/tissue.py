@@ -197,7 +197,7 @@ def tail_sums(rows_sq: np.ndarray) -> np.ndarray:
     count = fitted.sum(axis=0)
     lines = count >= 2
     rows = np.arange(rows_sq.shape[0], dtype=float)[:, None]
-    log_rows = np.where(fitted, np.log(np.where(fitted, rows_sq, 1.0)), 0.0)
+    log_rows = np.log(np.where(fitted, rows_sq, 1.0))  # 0 off the fitted rows
     sum_n, sum_nn = (fitted * rows).sum(axis=0), (fitted * rows**2).sum(axis=0)
     sum_y, sum_ny = log_rows.sum(axis=0), (log_rows * rows).sum(axis=0)
     m = np.maximum(count, 1)
