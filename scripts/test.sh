@@ -6,8 +6,7 @@
 #     worker, OpenBLAS's threads waiting for work held the cores from the OpenCL runtimes' threads (the kernel,
 #     reference and decode tests, tests/device/test_scanner.py tests/test_render.py tests/stage2
 #     tests/stage1/test_operator.py, took 294 s in two workers, 77 s with OPENBLAS_NUM_THREADS=1, on two
-#     first-generation Zen cores). ``--dist worksteal``: a worker that runs out of tests takes half of the other's
-#     queue, so that one long test handed out late does not leave a core idle at the end.
+#     first-generation Zen cores).
 #  2. The ``clock`` tests (what a run does against its clock: a budget's share, a score left out when no time
 #     is left) in one process after it. Beside a second worker a machine is half as fast to them: with every
 #     test in two workers, a 10 s run left no time to score in one of three full CI runs (docs/benchmarks.md).
@@ -15,7 +14,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh || exit $?
-OPENBLAS_NUM_THREADS=1 .venv/bin/python -m pytest -n 2 --dist worksteal -m "not clock" --durations=15 "$@"
+OPENBLAS_NUM_THREADS=1 .venv/bin/python -m pytest -n 2 -m "not clock" --durations=15 "$@"
 rest=$?
 [ "$rest" -eq 2 ] && exit 2  # interrupted (Ctrl-C): no second run
 .venv/bin/python -m pytest -m clock --durations=5 "$@"
