@@ -23,7 +23,11 @@ at the aimed one are printed, one JSON row per run:
   gradient computed every ``--lpips-every`` steps and reused between
   (:attr:`~octcl.host.stage3.schedule.RefineSchedule.lpips_every`);
 - ``tissue-level``: the same as ``tissue`` with its pixel phase's pixel term
-  replaced by the level term (a ``level`` phase, :mod:`octcl.host.stage3.loss`).
+  replaced by the level term (a ``level`` phase, :mod:`octcl.host.stage3.loss`);
+- with ``--phases SPEC ...``, instead of named schedules, the tissue
+  regime's schedule with its main phases replaced by each SPEC in turn:
+  phases ``TERMS:ITERATIONS:LR_Z_UM:LR_U`` joined by commas (its restarts
+  kept).
 
 torch is imported before the first schedule's clock starts, so that no
 schedule pays for it.
@@ -38,6 +42,8 @@ Example::
         --schedules tissue tissue-no-lpips tissue-lpips-every --no-lpips-steps 60 150 --seconds 30 --out OUT
     python scripts/bench_tissue_refine.py --skin 6 7 --real ../shared/data/real/orange.png OUT/targets/plain_skin_0.png \
         --schedules tissue tissue-level --seconds 16 --out OUT
+    python scripts/bench_tissue_refine.py --skin 6 --real ../shared/data/real/orange.png --seconds 21 --out OUT \
+        --phases pixel:120:0.001:0.02,all:250:0.0005:0.005 pixel:120:0.001:0.02,pixel:80:0.0005:0.005,all:250:0.00025:0.0025
 """
 
 from __future__ import annotations
@@ -87,8 +93,19 @@ def schedule_named(name: str, pixel_rates: tuple[float, float], steps: int | Non
     return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, iterations=steps), *rest))
 
 
-def bench(name: str, target: Path, names: list[str], seconds: float, pixel_rates, lengths: dict, lpips_every: int,
-          out: Path) -> None:
+def phases_schedule(spec: str) -> RefineSchedule:
+    """The tissue regime's schedule with its main phases from ``spec``: ``TERMS:ITERATIONS:LR_Z_UM:LR_U`` joined by
+    commas."""
+    phases = []
+    for part in spec.split(","):
+        terms, iterations, lr_z_um, lr_u = part.split(":")
+        phases.append(Phase(int(iterations), float(lr_z_um), float(lr_u), terms=terms))
+    return dataclasses.replace(TISSUE_SCHEDULE, phases=tuple(phases))
+
+
+def bench(name: str, target: Path, runs: list[tuple[dict, RefineSchedule]], seconds: float, out: Path) -> None:
+    """Stage 3 from the target's tissue-regime start for ``seconds`` per run: ``runs`` (label, schedule) pairs, each
+    label a dict of what names the run in its JSON row."""
     levels = target_levels(target_scan(read_target(target)), DEFAULT_CONFIG)
     aim = aimed_levels(levels)  # the tissue regime's, as octcl invert passes it to stage 3
     start_path = out / f"{name}_start.txt"
@@ -96,19 +113,26 @@ def bench(name: str, target: Path, names: list[str], seconds: float, pixel_rates
         invert(target, start_path, regime="tissue", iterations=0, threads=2)
     start = Phantom.load(start_path)
     import_torch()  # before any schedule's clock
+    for label, schedule in runs:
+        began = time.perf_counter()
+        result = refine(start, levels, schedule, deadline=time.monotonic() + seconds, threads=2, aim=aim)
+        rendered = render(result.phantom).levels
+        exact_share, aim_share = float(np.mean(rendered == levels)), float(np.mean(rendered == aim))
+        print(json.dumps({"target": name, **label, "seconds": round(time.perf_counter() - began, 1),
+                          "steps": result.iterations, "start_score": result.initial_components["mean"],
+                          "score": result.components["mean"], "exact_share": exact_share,
+                          "aim_share": aim_share}), flush=True)
+
+
+def named_runs(names: list[str], pixel_rates, lengths: dict, lpips_every: int) -> list[tuple[dict, RefineSchedule]]:
+    """(label, schedule) of each named schedule, one run for each of its lengths."""
+    runs = []
     for schedule in names:
         for steps in lengths.get(schedule, [None]):
-            began = time.perf_counter()
-            result = refine(start, levels, schedule_named(schedule, pixel_rates, steps, lpips_every),
-                            deadline=time.monotonic() + seconds, threads=2, aim=aim)
-            rendered = render(result.phantom).levels
-            exact_share, aim_share = float(np.mean(rendered == levels)), float(np.mean(rendered == aim))
-            print(json.dumps({"target": name, "schedule": schedule, "pixel_rates": pixel_rates,
-                              "steps_of_phase": steps,
-                              "lpips_every": lpips_every if schedule == "tissue-lpips-every" else None, "seconds": round(time.perf_counter() - began, 1),
-                              "steps": result.iterations, "start_score": result.initial_components["mean"],
-                              "score": result.components["mean"], "exact_share": exact_share,
-                              "aim_share": aim_share}), flush=True)
+            runs.append(({"schedule": schedule, "pixel_rates": pixel_rates, "steps_of_phase": steps,
+                          "lpips_every": lpips_every if schedule == "tissue-lpips-every" else None},
+                         schedule_named(schedule, pixel_rates, steps, lpips_every)))
+    return runs
 
 
 def main(argv=None) -> None:
@@ -124,6 +148,9 @@ def main(argv=None) -> None:
     parser.add_argument("--no-lpips-steps", nargs="+", type=int, default=[60],
                         help="tissue-no-lpips: its phase without the LPIPS terms, one run each (default 60)")
     parser.add_argument("--lpips-every", type=int, default=3, help="tissue-lpips-every's period (default 3)")
+    parser.add_argument("--phases", nargs="+", metavar="SPEC",
+                        help="instead of --schedules: the tissue schedule's main phases, TERMS:ITERATIONS:LR_Z_UM:LR_U "
+                             "joined by commas, one run each")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -132,9 +159,13 @@ def main(argv=None) -> None:
         targets.append((f"skin_{seed}", args.out / f"skin_{seed}.png"))
         write_grey_png(targets[-1][1], render(Phantom.skin(seed)).levels)
     targets += [(path.stem, path) for path in args.real]
+    if args.phases:
+        runs = [({"phases": spec}, phases_schedule(spec)) for spec in args.phases]
+    else:
+        runs = named_runs(args.schedules, tuple(args.pixel_rates),
+                          {"tissue": args.pixel_steps, "tissue-no-lpips": args.no_lpips_steps}, args.lpips_every)
     for name, target in targets:
-        bench(name, target, args.schedules, args.seconds, tuple(args.pixel_rates),
-              {"tissue": args.pixel_steps, "tissue-no-lpips": args.no_lpips_steps}, args.lpips_every, args.out)
+        bench(name, target, runs, args.seconds, args.out)
 
 
 if __name__ == "__main__":

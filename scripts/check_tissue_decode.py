@@ -71,6 +71,21 @@ the spread of its lines' energies, then
    error of the rendering's display over rows 0–32 in dB (5, 50, 95 %) and
    its correlation with −20·log10 T(top).
 
+7. with ``--neighbour-light RATIO ...``, the decode's rows with their lines'
+   light integrated from the bottom layer by layer as the scanner loses it:
+   line i loses Σ_d G_d·a²_{i−d} at a layer, a² = I/T² under the light of
+   each row's own line, not under line i's as
+   :func:`~octcl.host.stage2.tissue.rows_at_tissue_scale` takes it (two
+   passes a layer from its root, each line's loss over its own light from
+   Σ_d G_d·I_{i−d}·T_i²/T_{i−d}², the ratios clipped to [1/RATIO, RATIO];
+   0: unclipped); each line's light at the bottom corrected as the decode
+   does. Prints per RATIO the same figures as items 1 and 6 (pixels at
+   their level, shadow, lines short of light, T(top), made against assumed
+   light at rows 40, 80, 120 and 160), and first the decode itself and the
+   decode with each row's amplitude c·w·v from the least-squares gain of
+   the lines its beam reaches, v = Σ_d B_d²·T_{i'+d} / Σ_d B_d²·T²_{i'+d}
+   (|d| ≤ 2, the scanner's window), instead of c·w/T of its own line.
+
 Example::
 
     python scripts/check_tissue_decode.py --skin 5 --scales 0.0001 0.1 0.3
@@ -80,6 +95,7 @@ Example::
     python scripts/check_tissue_decode.py --skin 5 --quantiles 0.5 0.75 0.9 0.95 1 --refine 45
     python scripts/check_tissue_decode.py --skin 5 --quantiles 0.95 --refine 45 --stage1-field
     python scripts/check_tissue_decode.py --target ../shared/data/real/orange.png --quantiles 0.95 1 --refine 45
+    python scripts/check_tissue_decode.py --skin 6 --neighbour-light 0 1.2 1.5 2
 """
 
 from __future__ import annotations
@@ -282,6 +298,88 @@ def stripes(field: np.ndarray, levels: np.ndarray) -> None:
               f"{np.corrcoef(per_line, top_db)[0, 1]:.2f}")
 
 
+#: Item 7's passes a layer.
+NEIGHBOUR_PASSES = 2
+
+
+def neighbour_light(shown_sq: np.ndarray, bottom: np.ndarray, ratio: float) -> np.ndarray:
+    """Item 7: each line's light above each layer (L, Nx), from the bottom, under its neighbours' light."""
+    taps = ref.shadow_taps(DEFAULT_CONFIG)
+    reach = taps.size // 2
+    light, below = np.empty_like(shown_sq), np.sqrt(bottom)
+    rooted = convolve1d(shown_sq, taps, axis=1, mode="constant")
+    for layer in range(shown_sq.shape[0] - 1, -1, -1):
+        above, shown = tissue.light_above(below, rooted[layer]), shown_sq[layer]
+        for _ in range(NEIGHBOUR_PASSES if shown.any() else 0):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # Σ_d G_d·I_{i−d}·T_i²/T_{i−d}²: what line i loses, over its own light squared (zero padded).
+                lateral = np.nan_to_num(above[:, None] ** 2 / np.pad(above, reach)[
+                    np.arange(above.size)[:, None] + np.arange(2 * reach + 1)[::-1]] ** 2, nan=1.0, posinf=1e300)
+            if ratio:
+                lateral = np.clip(lateral, 1 / ratio, ratio)
+            neighbours = np.pad(shown, reach)[np.arange(above.size)[:, None] + np.arange(2 * reach + 1)[::-1]]
+            above = tissue.light_above(below, (taps * neighbours * lateral).sum(axis=1))
+        light[layer] = below = above
+    return light
+
+
+def least_squares_gain(light: np.ndarray) -> np.ndarray:
+    """Item 7: v per row, the least-squares gain over the lines its beam reaches (|d| ≤ 2)."""
+    beam_sq = np.exp(-2 * (np.arange(-2, 3) * DEFAULT_CONFIG.lateral_pitch_um / DEFAULT_CONFIG.beam_radius_um) ** 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return convolve1d(light, beam_sq, axis=1, mode="constant") / convolve1d(light**2, beam_sq, axis=1,
+                                                                                  mode="constant")
+
+
+def neighbour_rows(weights: np.ndarray, scale_sq: float, ratio: float | None, gain: bool):
+    """Item 7's phantom and the light it assumed, (L, Nx) in depth order; ``ratio`` None: the decode's own light."""
+    config, taps = DEFAULT_CONFIG, ref.shadow_taps(DEFAULT_CONFIG)
+    order = tissue.layer_order(config)
+    shown_sq = scale_sq * weights.reshape(-1, config.a_scans)[order] ** 2
+
+    def light_of(bottom):
+        if ratio is None:
+            return tissue.transmission_from_bottom(convolve1d(shown_sq, taps, axis=1, mode="constant"), bottom)
+        return neighbour_light(shown_sq, bottom, ratio)
+
+    bottom = np.maximum(1.0 - 2.0 * convolve1d(shown_sq, taps, axis=1, mode="constant").sum(axis=0), 0.0)
+    for _ in range(tissue.BOTTOM_PASSES):
+        bottom = np.maximum(bottom + (1.0 - light_of(bottom)[0] ** 2), 0.0)
+    light = light_of(bottom)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain_sq = least_squares_gain(light) ** 2 if gain else 1 / light**2
+        amplitude_sq = np.where(shown_sq > 0, np.minimum(np.nan_to_num(shown_sq * gain_sq, nan=1.0, posinf=1.0),
+                                                         tissue.MAX_AMPLITUDE_SQ), 0.0)
+    rows = np.empty_like(shown_sq)
+    rows[order] = np.sqrt(amplitude_sq)
+    return phantom_of_rows(rows.reshape(weights.shape) * (weights > 0), config, tissue.TISSUE_OFFSETS), light
+
+
+def neighbour_light_check(field: np.ndarray, levels: np.ndarray, ratios: list[float]) -> None:
+    """Item 7 of the module docstring."""
+    config, taps = DEFAULT_CONFIG, ref.shadow_taps(DEFAULT_CONFIG)
+    local_mean = tissue.local_mean_energy(field)
+    scale_sq = tissue.tissue_scale(local_mean, taps)
+    weights = decoded_weights(field, config, offsets=tissue.TISSUE_OFFSETS, diffuse=True,
+                              shadow=tissue.shadow_budget(local_mean, taps, scale_sq))
+    runs = [("the decode", None, False), ("least-squares gain", None, True)]
+    runs += [(f"neighbours' light, ratios {f'within ×{r:g}' if r else 'unclipped'}", r, False) for r in ratios]
+    for name, ratio, gain in runs:
+        phantom, light = neighbour_rows(weights, scale_sq, ratio, gain)
+        made, assumed = transmission_map(phantom, config), light[::len(tissue.TISSUE_OFFSETS)]
+        rows = []
+        for row in (40, 80, 120, 160):
+            both = (made[row] > 0) & (assumed[row] > 0)
+            rows.append(f"row {row} " + " ".join(f"{value:.2f}" for value in np.quantile(
+                20 * np.log10(made[row, both] / assumed[row, both]), [0.05, 0.5, 0.95])) if both.any() else
+                        f"row {row} –")
+        top = np.quantile(light[0], [0.05, 0.5, 0.95])
+        print(f"{name}: pixels at their level {np.mean(render(phantom).levels == levels):.3f}, shadow "
+              f"{shadow_db(made, levels):.1f} dB, lines short of light {int(np.sum(light[0] > 1 + 1e-6))}, T(top) "
+              f"(5, 50, 95 %) {' '.join(f'{value:.3g}' for value in top)}; made/assumed light, dB (5, 50, 95 %): "
+              + "; ".join(rows), flush=True)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--skin", type=int, default=5, help="skin phantom seed (default 5)")
@@ -296,6 +394,8 @@ def main(argv=None) -> None:
                              "lines' own c² (default 1)")
     parser.add_argument("--quantiles", nargs="+", type=float, help="item 5 of the description, instead of 1–2")
     parser.add_argument("--stripes", action="store_true", help="item 6 of the description, instead of 1–2")
+    parser.add_argument("--neighbour-light", nargs="+", type=float, metavar="RATIO",
+                        help="item 7 of the description, instead of 1–2 (0: unclipped)")
     parser.add_argument("--refine", type=float, metavar="SECONDS", help="with --quantiles: stage 3 from each decode")
     parser.add_argument("--stage1-field", action="store_true",
                         help="items 1, 2 and 5 decode stage 1's own field, not its least-norm twin (the tissue "
@@ -319,6 +419,9 @@ def main(argv=None) -> None:
         return
     if args.stripes:
         stripes(decoded_field, levels)
+        return
+    if args.neighbour_light:
+        neighbour_light_check(decoded_field, levels, args.neighbour_light)
         return
     if args.coupled_sweep is not None:
         truth_figures = tissue_figures(truth, levels)
