@@ -69,9 +69,11 @@ the spread of its lines' energies, then
    the lines short of light, their light at the top T(top) (5, 50, 95 %),
    the share of pixels at their level, and the stripes: each line's mean
    error of the rendering's display over rows 0–32 in dB (5, 50, 95 %) and
-   its correlation with −20·log10 T(top).
+   its correlation with −20·log10 T(top). Both with this tree's light at
+   the bottom (one value for every line since octcl 0.8.7).
 
-7. with ``--neighbour-light RATIO ...``, the decode's rows with their lines'
+7. with ``--neighbour-light RATIO ...``, the pairs' decode (its bright cells
+   not split, as octcl 0.8.6's) with its lines'
    light integrated from the bottom layer by layer as the scanner loses it:
    line i loses Σ_d G_d·a²_{i−d} at a layer, a² = I/T² under the light of
    each row's own line, not under line i's as
@@ -79,12 +81,22 @@ the spread of its lines' energies, then
    passes a layer from its root, each line's loss over its own light from
    Σ_d G_d·I_{i−d}·T_i²/T_{i−d}², the ratios clipped to [1/RATIO, RATIO];
    0: unclipped); each line's light at the bottom corrected as the decode
-   does. Prints per RATIO the same figures as items 1 and 6 (pixels at
-   their level, shadow, lines short of light, T(top), made against assumed
-   light at rows 40, 80, 120 and 160), and first the decode itself and the
-   decode with each row's amplitude c·w·v from the least-squares gain of
-   the lines its beam reaches, v = Σ_d B_d²·T_{i'+d} / Σ_d B_d²·T²_{i'+d}
-   (|d| ≤ 2, the scanner's window), instead of c·w/T of its own line.
+   did in 0.8.6. Prints per RATIO the figures of item 5 (shadow, bands
+   against the truth's, median E, pixels at their level), the lines short
+   of light, T(top) and the light the phantom makes against the light the
+   decode assumed at rows 40, 80, 120 and 160 (item 1), and first those of
+   that decode itself and of it with each row's amplitude c·w·v from the
+   least-squares gain of the lines its beam reaches,
+   v = Σ_d B_d²·T_{i'+d} / Σ_d B_d²·T²_{i'+d} (|d| ≤ 2, the scanner's
+   window), instead of c·w/T of its own line.
+
+8. with ``--bottom-light``, the decode with its pairs alone (octcl 0.8.6)
+   and with its brightest cells split
+   (:func:`~octcl.host.stage2.tissue.split_cells`), each with each line's
+   own light at the bottom, corrected until its light at the top is 1
+   (0.8.6), and with one light for every line, corrected until the median
+   line's is (0.8.7): item 7's figures for each; with ``--target PNG``, the
+   same on a real(-like) target.
 
 Example::
 
@@ -96,6 +108,8 @@ Example::
     python scripts/check_tissue_decode.py --skin 5 --quantiles 0.95 --refine 45 --stage1-field
     python scripts/check_tissue_decode.py --target ../shared/data/real/orange.png --quantiles 0.95 1 --refine 45
     python scripts/check_tissue_decode.py --skin 6 --neighbour-light 0 1.2 1.5 2
+    python scripts/check_tissue_decode.py --skin 6 --bottom-light
+    python scripts/check_tissue_decode.py --target ../shared/data/real/orange.png --bottom-light
 """
 
 from __future__ import annotations
@@ -128,7 +142,7 @@ from octcl.tissue import shadow_db, tissue_figures, transmission_map
 
 def light_mismatch_db(decoded: tissue.TissueDecode, rows: list[int]) -> None:
     made = transmission_map(decoded.phantom, DEFAULT_CONFIG)
-    assumed = decoded.transmission[::len(tissue.TISSUE_OFFSETS)]  # the first layer of each cell row
+    assumed = decoded.transmission[::len(tissue.TISSUE_ROW_OFFSETS)]  # the first layer of each cell row
     for row in rows:
         both = (made[row] > 0) & (assumed[row] > 0)
         difference = 20 * np.log10(made[row, both] / assumed[row, both])
@@ -139,7 +153,7 @@ def light_mismatch_db(decoded: tissue.TissueDecode, rows: list[int]) -> None:
 def top_down_rows(weights: np.ndarray, scale_sq: float) -> np.ndarray:
     """The decode's rows (D, Nz, Nx) at c² = ``scale_sq``, each divided by its line's light from the top."""
     config, taps = DEFAULT_CONFIG, ref.shadow_taps(DEFAULT_CONFIG)
-    order = tissue.layer_order(config)
+    order = tissue.layer_order(config, tissue.TISSUE_OFFSETS)
     layers = weights.reshape(-1, config.a_scans)[order]
     light, amplitudes = np.ones(config.a_scans), np.zeros_like(layers)
     for index, layer in enumerate(layers):
@@ -282,7 +296,8 @@ def stripes(field: np.ndarray, levels: np.ndarray) -> None:
     """Item 6 of the module docstring."""
     config, taps = DEFAULT_CONFIG, ref.shadow_taps(DEFAULT_CONFIG)
     weights = decoded_weights(field, config, offsets=tissue.TISSUE_OFFSETS, shadow=tissue.local_mean_energy(field))
-    nearest = tissue.rows_at_tissue_scale(weights, tissue.tissue_scale((weights**2).sum(axis=0), taps), config)
+    nearest = tissue.rows_at_tissue_scale(weights, tissue.tissue_scale((weights**2).sum(axis=0), taps), config,
+                                          tissue.TISSUE_OFFSETS)
     target = display_of_level()[levels]
     for name, decoded in (("nearest pairs (0.8.3)", nearest), ("budget", tissue.decode_tissue(field, config))):
         rendering = render(decoded.phantom)
@@ -331,10 +346,13 @@ def least_squares_gain(light: np.ndarray) -> np.ndarray:
                                                                                   mode="constant")
 
 
-def neighbour_rows(weights: np.ndarray, scale_sq: float, ratio: float | None, gain: bool):
-    """Item 7's phantom and the light it assumed, (L, Nx) in depth order; ``ratio`` None: the decode's own light."""
+def neighbour_rows(weights: np.ndarray, scale_sq: float, ratio: float | None, gain: bool,
+                   offsets: np.ndarray = tissue.TISSUE_OFFSETS, common: bool = False):
+    """Items 7 and 8: the phantom of ``weights`` (at ``offsets``) and the light it assumed, (L, Nx) in depth order;
+    ``ratio`` None: each line's light as the decode takes it; the light at the bottom each line's own, corrected
+    until its light at the top is 1, or with ``common`` one value, until the median line's is."""
     config, taps = DEFAULT_CONFIG, ref.shadow_taps(DEFAULT_CONFIG)
-    order = tissue.layer_order(config)
+    order = tissue.layer_order(config, offsets)
     shown_sq = scale_sq * weights.reshape(-1, config.a_scans)[order] ** 2
 
     def light_of(bottom):
@@ -342,9 +360,15 @@ def neighbour_rows(weights: np.ndarray, scale_sq: float, ratio: float | None, ga
             return tissue.transmission_from_bottom(convolve1d(shown_sq, taps, axis=1, mode="constant"), bottom)
         return neighbour_light(shown_sq, bottom, ratio)
 
-    bottom = np.maximum(1.0 - 2.0 * convolve1d(shown_sq, taps, axis=1, mode="constant").sum(axis=0), 0.0)
+    lit = shown_sq.any(axis=0)
+
+    def corrected(bottom):  # one value: the median line's of those with rows, as the decode takes it
+        bottom = np.maximum(bottom, 0.0)
+        return np.full_like(bottom, np.median(bottom[lit])) if common else bottom
+
+    bottom = corrected(1.0 - 2.0 * convolve1d(shown_sq, taps, axis=1, mode="constant").sum(axis=0))
     for _ in range(tissue.BOTTOM_PASSES):
-        bottom = np.maximum(bottom + (1.0 - light_of(bottom)[0] ** 2), 0.0)
+        bottom = corrected(bottom + (1.0 - light_of(bottom)[0] ** 2))
     light = light_of(bottom)
     with np.errstate(divide="ignore", invalid="ignore"):
         gain_sq = least_squares_gain(light) ** 2 if gain else 1 / light**2
@@ -352,32 +376,53 @@ def neighbour_rows(weights: np.ndarray, scale_sq: float, ratio: float | None, ga
                                                          tissue.MAX_AMPLITUDE_SQ), 0.0)
     rows = np.empty_like(shown_sq)
     rows[order] = np.sqrt(amplitude_sq)
-    return phantom_of_rows(rows.reshape(weights.shape) * (weights > 0), config, tissue.TISSUE_OFFSETS), light
+    return phantom_of_rows(rows.reshape(weights.shape) * (weights > 0), config, offsets), light
 
 
-def neighbour_light_check(field: np.ndarray, levels: np.ndarray, ratios: list[float]) -> None:
-    """Item 7 of the module docstring."""
-    config, taps = DEFAULT_CONFIG, ref.shadow_taps(DEFAULT_CONFIG)
-    local_mean = tissue.local_mean_energy(field)
+def light_line(name: str, phantom: Phantom, light: np.ndarray, levels: np.ndarray, its: dict | None) -> str:
+    """Items 7 and 8's figures of a phantom whose decode assumed ``light`` (L, Nx), as one line."""
+    made, assumed = transmission_map(phantom, DEFAULT_CONFIG), light[::light.shape[0] // levels.shape[0]]
+    rows = []
+    for row in (40, 80, 120, 160):
+        both = (made[row] > 0) & (assumed[row] > 0)
+        spread = np.quantile(20 * np.log10(made[row, both] / assumed[row, both]), [0.05, 0.5, 0.95]) if both.any() else []
+        rows.append(f"row {row} " + (" ".join(f"{value:.2f}" for value in spread) or "–"))
+    top = np.quantile(light[0], [0.05, 0.5, 0.95])
+    return (f"{name}: {figures_line(phantom, its, levels)}, lines short of light {int(np.sum(light[0] > 1 + 1e-6))}, "
+            f"T(top) (5, 50, 95 %) {' '.join(f'{value:.3g}' for value in top)}; made/assumed light, dB (5, 50, 95 %): "
+            + "; ".join(rows))
+
+
+def decode_weights(field: np.ndarray, split: bool) -> tuple[np.ndarray, float]:
+    """The tissue decode's rows at the field's scale (split or pairs alone) and its scale c²."""
+    taps, local_mean = ref.shadow_taps(DEFAULT_CONFIG), tissue.local_mean_energy(field)
     scale_sq = tissue.tissue_scale(local_mean, taps)
-    weights = decoded_weights(field, config, offsets=tissue.TISSUE_OFFSETS, diffuse=True,
-                              shadow=tissue.shadow_budget(local_mean, taps, scale_sq))
-    runs = [("the decode", None, False), ("least-squares gain", None, True)]
+    weights = decoded_weights(field, DEFAULT_CONFIG, offsets=tissue.TISSUE_OFFSETS, diffuse=True,
+                              shadow=tissue.shadow_budget(local_mean, taps, scale_sq),
+                              split=tissue.split_cells(field) if split else None)
+    return weights, scale_sq
+
+
+def neighbour_light_check(field: np.ndarray, levels: np.ndarray, ratios: list[float], its: dict | None) -> None:
+    """Item 7 of the module docstring."""
+    weights, scale_sq = decode_weights(field, split=False)
+    runs = [("the pairs' decode, each line's own light at the bottom (0.8.6)", None, False),
+            ("least-squares gain", None, True)]
     runs += [(f"neighbours' light, ratios {f'within ×{r:g}' if r else 'unclipped'}", r, False) for r in ratios]
     for name, ratio, gain in runs:
-        phantom, light = neighbour_rows(weights, scale_sq, ratio, gain)
-        made, assumed = transmission_map(phantom, config), light[::len(tissue.TISSUE_OFFSETS)]
-        rows = []
-        for row in (40, 80, 120, 160):
-            both = (made[row] > 0) & (assumed[row] > 0)
-            rows.append(f"row {row} " + " ".join(f"{value:.2f}" for value in np.quantile(
-                20 * np.log10(made[row, both] / assumed[row, both]), [0.05, 0.5, 0.95])) if both.any() else
-                        f"row {row} –")
-        top = np.quantile(light[0], [0.05, 0.5, 0.95])
-        print(f"{name}: pixels at their level {np.mean(render(phantom).levels == levels):.3f}, shadow "
-              f"{shadow_db(made, levels):.1f} dB, lines short of light {int(np.sum(light[0] > 1 + 1e-6))}, T(top) "
-              f"(5, 50, 95 %) {' '.join(f'{value:.3g}' for value in top)}; made/assumed light, dB (5, 50, 95 %): "
-              + "; ".join(rows), flush=True)
+        print(light_line(name, *neighbour_rows(weights, scale_sq, ratio, gain), levels, its), flush=True)
+
+
+def bottom_light_check(field: np.ndarray, levels: np.ndarray, its: dict | None) -> None:
+    """Item 8 of the module docstring."""
+    for split in (False, True):
+        weights, scale_sq = decode_weights(field, split)
+        offsets = tissue.TISSUE_ROW_OFFSETS if split else tissue.TISSUE_OFFSETS
+        for common in (False, True):
+            name = (f"{'bright cells split' if split else 'pairs alone'}, "
+                    f"{'one light' if common else 'each line its own light'} at the bottom")
+            print(light_line(name, *neighbour_rows(weights, scale_sq, None, False, offsets, common), levels, its),
+                  flush=True)
 
 
 def main(argv=None) -> None:
@@ -394,6 +439,7 @@ def main(argv=None) -> None:
                              "lines' own c² (default 1)")
     parser.add_argument("--quantiles", nargs="+", type=float, help="item 5 of the description, instead of 1–2")
     parser.add_argument("--stripes", action="store_true", help="item 6 of the description, instead of 1–2")
+    parser.add_argument("--bottom-light", action="store_true", help="item 8 of the description, instead of 1–2")
     parser.add_argument("--neighbour-light", nargs="+", type=float, metavar="RATIO",
                         help="item 7 of the description, instead of 1–2 (0: unclipped)")
     parser.add_argument("--refine", type=float, metavar="SECONDS", help="with --quantiles: stage 3 from each decode")
@@ -401,8 +447,8 @@ def main(argv=None) -> None:
                         help="items 1, 2 and 5 decode stage 1's own field, not its least-norm twin (the tissue "
                              "regime's)")
     args = parser.parse_args(argv)
-    if args.target and not args.quantiles:
-        parser.error("--target goes with --quantiles (items 1–4 are the skin phantoms')")
+    if args.target and not (args.quantiles or args.bottom_light):
+        parser.error("--target goes with --quantiles or --bottom-light (items 1–4 are the skin phantoms')")
     truth = None if args.target else Phantom.skin(args.skin)
     levels = target_levels(read_target(args.target), DEFAULT_CONFIG) if args.target else render(truth).levels
     name = args.target.name if args.target else f"skin {args.skin}"
@@ -413,18 +459,20 @@ def main(argv=None) -> None:
     spread = np.quantile(line_energies(decoded_field) / np.median(line_energies(decoded_field)), [0.05, 0.95])
     print(f"{name}: decoding {'stage 1' if args.stage1_field else 'the least-norm twin of stage 1'}'s "
           f"field, its lines' Σ|F|² {spread[0]:.2f}–{spread[1]:.2f} times the median line's (5–95 %)", flush=True)
+    truth_figures = None if truth is None else tissue_figures(truth, levels)
     if args.quantiles:
-        truth_figures = None if truth is None else tissue_figures(truth, levels)
         quantile_choice(decoded_field, truth_figures, levels, args.quantiles, args.refine)
         return
     if args.stripes:
         stripes(decoded_field, levels)
         return
     if args.neighbour_light:
-        neighbour_light_check(decoded_field, levels, args.neighbour_light)
+        neighbour_light_check(decoded_field, levels, args.neighbour_light, truth_figures)
+        return
+    if args.bottom_light:
+        bottom_light_check(decoded_field, levels, truth_figures)
         return
     if args.coupled_sweep is not None:
-        truth_figures = tissue_figures(truth, levels)
         for factor in args.coupled_sweep or [1.0]:
             print(f"c² × {factor:g}")
             coupled_sweep(twin, truth_figures, levels, factor)

@@ -303,19 +303,23 @@ def shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, s
     return pairs
 
 
-def diffused_shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, steps: int = 3) -> np.ndarray:
+def diffused_shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.ndarray, steps: int = 3,
+                          split: np.ndarray | None = None) -> np.ndarray:
     """:func:`shadow_pairs` for a grid of values (Nz, Nx), the shadow they miss carried down each A-scan line.
 
     Row by row from the top, each cell takes the pair whose p² + q² is nearest its target t_n = s_n + r_n, s the
     ``shadow`` and r what the cells above on its line missed of theirs: r_{n+1} = t_n − (p² + q²)_n, bounded to
     ±:data:`SHADOW_CARRY_LIMIT`·s_n. A cell's pair reaches 0.59–3.4 times its |value|², so a bright cell shadows
     more than its share and a dark one less; carried on, the line's shadow summed down to any depth follows
-    Σ s (error diffusion along depth), where :func:`shadow_pairs` leaves each cell's miss where it falls."""
+    Σ s (error diffusion along depth), where :func:`shadow_pairs` leaves each cell's miss where it falls.
+    A cell of ``split`` (Nz, Nx; :func:`split_weights`) shadows half its pair's p² + q²."""
     candidates = list(_pair_candidates(values, carriers, steps))
     firsts = np.array([first for first, _, _, _ in candidates])
     seconds = np.array([second for _, second, _, _ in candidates])
     inside = np.stack([candidate[2] for candidate in candidates])
     energy = np.where(inside, np.stack([candidate[3] for candidate in candidates]), np.nan)
+    if split is not None:
+        energy = np.where(split, energy / 2, energy)
     pairs = _first_pair(values, carriers)
     carry = np.zeros(values.shape[1:])
     lines = np.arange(values.shape[1])
@@ -332,10 +336,24 @@ def diffused_shadow_pairs(values: np.ndarray, carriers: np.ndarray, shadow: np.n
     return pairs
 
 
+def replicated_offsets(offsets: np.ndarray) -> np.ndarray:
+    """The carrier ``offsets`` (in λ) and after them their replicas, each half a wavelength nearer 0: the same
+    carrier phase (2·k0·λ/2 = 2π), another depth (:func:`split_weights`)."""
+    offsets = np.asarray(offsets, dtype=float)
+    return np.concatenate([offsets, offsets - np.copysign(0.5, offsets)])
+
+
+def split_weights(weights: np.ndarray, split: np.ndarray) -> np.ndarray:
+    """Rows (2D, Nz, Nx) at :func:`replicated_offsets` from the pairs' weights (D, Nz, Nx): a cell of ``split``
+    keeps half of each weight and gives its replica the other half; they shadow (p² + q²)/2."""
+    half = np.where(split, 0.5, 0.0)
+    return np.concatenate([weights * (1.0 - half), weights * half])
+
+
 def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
                     corrections: int = DECODE_CORRECTIONS, offsets: np.ndarray = OFFSETS_IN_WAVELENGTHS,
                     shadow: np.ndarray | None = None, diffuse: bool = False, workers: int = 1,
-                    tolerance: float = DECODE_TOLERANCE) -> np.ndarray:
+                    tolerance: float = DECODE_TOLERANCE, split: np.ndarray | None = None) -> np.ndarray:
     """The rows' amplitudes that render, without shadowing, exactly as the field: (D, Nz, Nx), at the field's scale.
 
     Offset d of cell (n, i) is the row at depth ``row_depths_um(config, offsets)[d, n]``
@@ -344,7 +362,9 @@ def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     pair whose weights' p² + q² is nearest it (:func:`shadow_pairs`, chosen
     once from the field; with ``diffuse``, :func:`diffused_shadow_pairs`). ``workers``: threads of the depth
     DFTs (:func:`rendered_cells`; the same result at any count). Up to ``corrections`` updates of the placed
-    field, fewer once max|F − F_eff| ≤ ``tolerance``·max|F| (module docstring; 0: every one).
+    field, fewer once max|F − F_eff| ≤ ``tolerance``·max|F| (module docstring; 0: every one). With ``split``
+    (Nz, Nx, bool), those cells' weights go half onto replicas (:func:`split_weights`): the result is (2D, Nz, Nx)
+    at :func:`replicated_offsets`, and a split cell's pair is chosen for what it shadows, half its p² + q².
 
     Raises
     ------
@@ -361,25 +381,32 @@ def decoded_weights(field: np.ndarray, config: ScannerConfig = DEFAULT_CONFIG,
     pairs = None
     placed = field
     enough = tolerance * np.abs(field).max()
+    rows = offsets if split is None else replicated_offsets(offsets)
     for _ in range(corrections + 1):
         if shadow is not None:  # chosen from the field; again for a value a correction moved out of its pair
-            pairs = _kept_pairs(placed, config, offsets, shadow, pairs, diffuse)
+            pairs = _kept_pairs(placed, config, offsets, shadow, pairs, diffuse, split)
         weights = _cell_weights(placed, config, offsets, pairs)
-        residual = field - rendered_cells(weights, config, offsets, workers)
+        if split is not None:
+            weights = split_weights(weights, split)
+        residual = field - rendered_cells(weights, config, rows, workers)
         if np.abs(residual).max() <= enough:
             break
         placed = placed + residual
     return weights
 
 
-def _kept_pairs(placed, config, offsets, shadow, pairs, diffuse: bool = False):
+def _kept_pairs(placed, config, offsets, shadow, pairs, diffuse: bool = False, split=None):
     """``pairs``, with :func:`shadow_pairs` for the cells of ``placed`` whose value is not strictly inside its
     pair (every cell at first); chosen again only for the cells that left their pair: the choice is per cell,
     so these are the pairs a choice over every cell gives, for the cost of the few that moved. With ``diffuse``
     the first choice is :func:`diffused_shadow_pairs`; a cell that leaves its pair takes the nearest alone."""
     values, carriers = _carrier_free(placed, config), row_carriers(config, offsets)
+    if pairs is None and diffuse:
+        return diffused_shadow_pairs(values, carriers, shadow, split=split)
+    if split is not None:
+        shadow = np.where(split, 2 * shadow, shadow)
     if pairs is None:
-        return (diffused_shadow_pairs if diffuse else shadow_pairs)(values, carriers, shadow)
+        return shadow_pairs(values, carriers, shadow)
     c1, c2 = _pair_carriers(carriers, pairs, values.shape)
     within = np.angle(values / c1) % (2 * np.pi)
     outside = ~((within > 0) & (within < np.angle(c2 / c1) % (2 * np.pi)))
