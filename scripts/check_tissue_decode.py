@@ -140,13 +140,21 @@ from octcl.render import render
 from octcl.tissue import shadow_db, tissue_figures, transmission_map
 
 
+def light_spread_db(made: np.ndarray, light: np.ndarray, row: int) -> np.ndarray:
+    """The light a phantom makes (:func:`~octcl.tissue.transmission_map`) over the light its decode assumed
+    (``light``, (L, Nx), the first layer of each cell row taken) at pixel row ``row``, in dB: 5th, 50th and 95th
+    percentiles over the lines with both positive (empty where none has)."""
+    assumed = light[::light.shape[0] // made.shape[0]]
+    both = (made[row] > 0) & (assumed[row] > 0)
+    if not both.any():
+        return np.array([])
+    return np.quantile(20 * np.log10(made[row, both] / assumed[row, both]), [0.05, 0.5, 0.95])
+
+
 def light_mismatch_db(decoded: tissue.TissueDecode, rows: list[int]) -> None:
     made = transmission_map(decoded.phantom, DEFAULT_CONFIG)
-    assumed = decoded.transmission[::len(tissue.TISSUE_ROW_OFFSETS)]  # the first layer of each cell row
     for row in rows:
-        both = (made[row] > 0) & (assumed[row] > 0)
-        difference = 20 * np.log10(made[row, both] / assumed[row, both])
-        quantiles = np.round(np.quantile(difference, [0.05, 0.5, 0.95]), 2)
+        quantiles = np.round(light_spread_db(made, decoded.transmission, row), 2)
         print(f"row {row}: made/assumed light, dB (5, 50, 95 %): {quantiles}")
 
 
@@ -321,18 +329,20 @@ def neighbour_light(shown_sq: np.ndarray, bottom: np.ndarray, ratio: float) -> n
     """Item 7: each line's light above each layer (L, Nx), from the bottom, under its neighbours' light."""
     taps = ref.shadow_taps(DEFAULT_CONFIG)
     reach = taps.size // 2
+    # window[i, k]: line i − d of the zero-padded lines, d = reach − k, so that taps[k] = G_d.
+    window = np.arange(shown_sq.shape[1])[:, None] + np.arange(2 * reach + 1)[::-1]
     light, below = np.empty_like(shown_sq), np.sqrt(bottom)
     rooted = convolve1d(shown_sq, taps, axis=1, mode="constant")
     for layer in range(shown_sq.shape[0] - 1, -1, -1):
         above, shown = tissue.light_above(below, rooted[layer]), shown_sq[layer]
+        neighbours = np.pad(shown, reach)[window]
         for _ in range(NEIGHBOUR_PASSES if shown.any() else 0):
             with np.errstate(divide="ignore", invalid="ignore"):
                 # Σ_d G_d·I_{i−d}·T_i²/T_{i−d}²: what line i loses, over its own light squared (zero padded).
-                lateral = np.nan_to_num(above[:, None] ** 2 / np.pad(above, reach)[
-                    np.arange(above.size)[:, None] + np.arange(2 * reach + 1)[::-1]] ** 2, nan=1.0, posinf=1e300)
+                lateral = np.nan_to_num(above[:, None] ** 2 / np.pad(above, reach)[window] ** 2, nan=1.0,
+                                        posinf=1e300)
             if ratio:
                 lateral = np.clip(lateral, 1 / ratio, ratio)
-            neighbours = np.pad(shown, reach)[np.arange(above.size)[:, None] + np.arange(2 * reach + 1)[::-1]]
             above = tissue.light_above(below, (taps * neighbours * lateral).sum(axis=1))
         light[layer] = below = above
     return light
@@ -340,7 +350,7 @@ def neighbour_light(shown_sq: np.ndarray, bottom: np.ndarray, ratio: float) -> n
 
 def least_squares_gain(light: np.ndarray) -> np.ndarray:
     """Item 7: v per row, the least-squares gain over the lines its beam reaches (|d| ≤ 2)."""
-    beam_sq = np.exp(-2 * (np.arange(-2, 3) * DEFAULT_CONFIG.lateral_pitch_um / DEFAULT_CONFIG.beam_radius_um) ** 2)
+    beam_sq = lateral_taps(DEFAULT_CONFIG) ** 2  # B_d² over the scanner's window
     with np.errstate(divide="ignore", invalid="ignore"):
         return convolve1d(light, beam_sq, axis=1, mode="constant") / convolve1d(light**2, beam_sq, axis=1,
                                                                                   mode="constant")
@@ -354,10 +364,11 @@ def neighbour_rows(weights: np.ndarray, scale_sq: float, ratio: float | None, ga
     config, taps = DEFAULT_CONFIG, ref.shadow_taps(DEFAULT_CONFIG)
     order = tissue.layer_order(config, offsets)
     shown_sq = scale_sq * weights.reshape(-1, config.a_scans)[order] ** 2
+    shadow_sq = convolve1d(shown_sq, taps, axis=1, mode="constant")
 
     def light_of(bottom):
         if ratio is None:
-            return tissue.transmission_from_bottom(convolve1d(shown_sq, taps, axis=1, mode="constant"), bottom)
+            return tissue.transmission_from_bottom(shadow_sq, bottom)
         return neighbour_light(shown_sq, bottom, ratio)
 
     lit = shown_sq.any(axis=0)
@@ -366,7 +377,7 @@ def neighbour_rows(weights: np.ndarray, scale_sq: float, ratio: float | None, ga
         bottom = np.maximum(bottom, 0.0)
         return np.full_like(bottom, np.median(bottom[lit])) if common else bottom
 
-    bottom = corrected(1.0 - 2.0 * convolve1d(shown_sq, taps, axis=1, mode="constant").sum(axis=0))
+    bottom = corrected(1.0 - 2.0 * shadow_sq.sum(axis=0))
     for _ in range(tissue.BOTTOM_PASSES):
         bottom = corrected(bottom + (1.0 - light_of(bottom)[0] ** 2))
     light = light_of(bottom)
@@ -381,12 +392,9 @@ def neighbour_rows(weights: np.ndarray, scale_sq: float, ratio: float | None, ga
 
 def light_line(name: str, phantom: Phantom, light: np.ndarray, levels: np.ndarray, its: dict | None) -> str:
     """Items 7 and 8's figures of a phantom whose decode assumed ``light`` (L, Nx), as one line."""
-    made, assumed = transmission_map(phantom, DEFAULT_CONFIG), light[::light.shape[0] // levels.shape[0]]
-    rows = []
-    for row in (40, 80, 120, 160):
-        both = (made[row] > 0) & (assumed[row] > 0)
-        spread = np.quantile(20 * np.log10(made[row, both] / assumed[row, both]), [0.05, 0.5, 0.95]) if both.any() else []
-        rows.append(f"row {row} " + (" ".join(f"{value:.2f}" for value in spread) or "–"))
+    made = transmission_map(phantom, DEFAULT_CONFIG)
+    rows = [f"row {row} " + (" ".join(f"{value:.2f}" for value in light_spread_db(made, light, row)) or "–")
+            for row in (40, 80, 120, 160)]
     top = np.quantile(light[0], [0.05, 0.5, 0.95])
     return (f"{name}: {figures_line(phantom, its, levels)}, lines short of light {int(np.sum(light[0] > 1 + 1e-6))}, "
             f"T(top) (5, 50, 95 %) {' '.join(f'{value:.3g}' for value in top)}; made/assumed light, dB (5, 50, 95 %): "

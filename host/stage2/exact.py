@@ -399,7 +399,9 @@ def _kept_pairs(placed, config, offsets, shadow, pairs, diffuse: bool = False, s
     """``pairs``, with :func:`shadow_pairs` for the cells of ``placed`` whose value is not strictly inside its
     pair (every cell at first); chosen again only for the cells that left their pair: the choice is per cell,
     so these are the pairs a choice over every cell gives, for the cost of the few that moved. With ``diffuse``
-    the first choice is :func:`diffused_shadow_pairs`; a cell that leaves its pair takes the nearest alone."""
+    the first choice is :func:`diffused_shadow_pairs`; a cell that leaves its pair takes the nearest alone. A cell
+    of ``split`` shadows half its pair's p² + q²: the diffused choice halves its candidates' energies (the shadow it
+    carries on stays in one unit), the nearest-pair choice aims its p² + q² at twice its shadow."""
     values, carriers = _carrier_free(placed, config), row_carriers(config, offsets)
     if pairs is None and diffuse:
         return diffused_shadow_pairs(values, carriers, shadow, split=split)

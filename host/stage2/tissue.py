@@ -11,8 +11,8 @@ A-scan i after a layer ℓ of rows (amplitudes a_ℓ on the lines i') is
 
 and the phantom renders as the field does where every row shows c·w:
 a = c·w/T, T the transmission of the row's own line when the light reaches
-its layer (the layers, in depth order, are the cell rows' eight depth
-offsets, :data:`TISSUE_OFFSETS`: 2048 of them).
+its layer (the layers, in depth order, are the cell rows' sixteen depth
+offsets, :data:`TISSUE_ROW_OFFSETS`: 4096 of them).
 
 Integrating T from the top, T ← T·(1 − c²w²/T²), is unstable: an error in T
 grows like e^{2μz} through a homogeneous layer. From the bottom it shrinks.
@@ -164,8 +164,8 @@ class TissueDecode:
     scale : float
         c: every row shows c·w (w the exact decode's amplitude at the field's scale).
     transmission : ndarray, (L, Nx)
-        T of each line when the light reaches each layer, layers in depth order (L = 8·Nz: the rows of
-        :data:`TISSUE_OFFSETS`).
+        T of each line when the light reaches each layer, layers in depth order (L = 16·Nz: the rows of
+        :data:`TISSUE_ROW_OFFSETS`).
     bottom_light : ndarray, (Nx,)
         T² below the last layer, per line (one value for every line, module docstring).
     short_lines : int
