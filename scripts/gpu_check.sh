@@ -172,6 +172,10 @@ run() {
     "$python" -m pip install -q --disable-pip-version-check --no-index --no-deps --no-compile --no-cache-dir \
         --upgrade --target "$site" "${wheels[@]}" >> "$env_txt" 2>&1 \
         || { tail -n 20 "$env_txt" >&2; die "pip install of the wheels in $dir/wheels failed (above; $env_txt)"; }
+    # Byte-code for the installed wheels, in parallel: with PYTHONDONTWRITEBYTECODE (below, so that the checkout's
+    # tests leave no __pycache__) every process would compile octcl, pyopencl and dask at its start
+    # (scripts/bench_bytecode.sh: 1.5-2.5 s a default run on two cores).
+    env -u PYTHONDONTWRITEBYTECODE "$python" -m compileall -q -j 0 "$site" >/dev/null 2>&1 || true
     export PYTHONPATH=$site${PYTHONPATH:+:$PYTHONPATH}
     export PYTHONSAFEPATH=1          # the checkout's octcl/ must not shadow the installed package (no octcl.host there)
     export PYTHONDONTWRITEBYTECODE=1
