@@ -27,7 +27,7 @@ Stages 1–2 come in three regimes (:data:`REGIMES`):
   then :func:`octcl.host.stage2.tissue.decode_tissue` of it (the rows at tissue scale,
   each divided by the light the rows above leave it, the scale from the
   light left below the data) and stage 3 with shadowing on
-  (:data:`TISSUE_SCHEDULE`: the pixel term alone, then the full loss). The
+  (:data:`TISSUE_SCHEDULE`: the pixel term alone, L-BFGS onto the levels, then the full loss). The
   result carries the phantom's figures as tissue
   (:func:`octcl.tissue.tissue_figures`).
 
@@ -168,7 +168,15 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
 #: (0.0005, 0.005) before it gained more on the skins and lost on all three orange scans (by 5e−5 to 1.7e−4):
 #: not taken (docs/benchmarks.md, "The tissue regime's full loss at half its rates"). The restarts are as before:
 #: a 30 s run does not reach them.
-TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(120, 0.001, 0.02, terms="pixel"), Phase(250, 0.00025, 0.0025)),
+#: The hinge phase after the pixel phase (:mod:`octcl.host.stage3.hinge`): L-BFGS on each pixel's magnitude against
+#: its aimed level's interval, through the shadowing, where Adam's fixed step holds pixels one or two levels off.
+#: Stage 3 alone for 21 s from each target's tissue start (``scripts/bench_tissue_refine.py --phases``, two Zen 4
+#: cores), the pixel phase then the full loss against the pixel phase, the hinge, the full loss: skin 8 0.99985 →
+#: 0.99988 (93.4 → 95.4 % of pixels at their level), orange.png 0.99930 → 0.99966; with 60 pixel steps instead of
+#: 120 before the hinge, skin 9 0.99982 against 0.99986, orange.png 0.99966 against 0.99967, plain_skin_1 0.99974
+#: against 0.99978 (docs/benchmarks.md, "Stage 3's hinge phase").
+TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(120, 0.001, 0.02, terms="pixel"), Phase(300, 0.0, 0.0, terms="hinge"),
+                                         Phase(250, 0.00025, 0.0025)),
                                  restarts=(Phase(60, 0.0005, 0.005), Phase(60, 0.00025, 0.0025)))
 #: torch's thread count in a fixed-schedule run unless given. The thread
 #: count changes no bit of the result (docs/reproducibility.md), only the

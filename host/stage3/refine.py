@@ -127,8 +127,11 @@ from octcl.render import Rendering, display_vjp
 
 from ..optim.adam import Adam
 from ..threads import available_cores
-from .schedule import FALL_LR_FACTOR, MAX_ENERGY_PCT, SINGLE_TERM_PHASES, STOP_RULES, Phase, RefineSchedule
+from ..optim import lbfgs
 from ..pipeline.target import target_scan
+from ..stage1.levels import target_levels
+from .hinge import HINGE_MEMORY, HingeUnknowns, LevelHinge
+from .schedule import FALL_LR_FACTOR, HINGE, MAX_ENERGY_PCT, SINGLE_TERM_PHASES, STOP_RULES, Phase, RefineSchedule
 
 if TYPE_CHECKING:
     from .loss import DisplayLoss, ExactScore
@@ -567,6 +570,7 @@ class _Plan:
     threads: int | None            # None: chosen by timing (:class:`_ThreadChooser`)
     target_score: float | None
     aim: np.ndarray | None
+    levels: np.ndarray             # what a hinge phase fits: the aim where given, else the target's levels
     score_by: float | None         # the input's score ends by then, or is left out
     progress: object               # callable or None
     on_improvement: object         # callable or None
@@ -584,8 +588,9 @@ class _Plan:
             from .loss import ExactScore
 
             exact_score = ExactScore(target)
+        levels = target_levels(target if aim is None else aim, config)
         return cls(schedule, target_scan(target), kernels, exact_score, config, deadline, ceiling, threads,
-                   target_score, aim, score_by, progress, on_improvement)
+                   target_score, aim, levels, score_by, progress, on_improvement)
 
 
 class _Run:
@@ -747,6 +752,7 @@ class _Descent:
         self.best_after = [refinement.best.score]  # the best score at the start and after each checkpoint
         self.lpips_kept_at = None  # the step whose LPIPS gradient the loss keeps (lpips_every > 1)
         self.stalled = False
+        self.scored_after = None  # the step count whose iterate was scored last
 
     def _fresh_adam(self) -> Adam:
         shapes = (self.z_um.shape, self.log_energy.shape)
@@ -759,8 +765,18 @@ class _Descent:
         checkpoint, returns there without scoring again; one the deadline
         stops scores its last iterate if that still fits.
         """
-        for step, phase in enumerate(self.steps):
+        step = 0
+        while step < len(self.steps):
+            phase = self.steps[step]
             self.refinement.check_ceiling(self.stage)
+            if phase.terms == HINGE:
+                length = next((end for end in range(step, len(self.steps)) if self.steps[end] is not phase),
+                              len(self.steps)) - step
+                step = _HingeRun(self, step).run(length)
+                if self.refinement.stop_reason or self.stalled:
+                    return self.stalled
+                self.adam = self._fresh_adam()  # the moments are those of an iterate the hinge has moved from
+                continue
             lpips_mode = self._lpips_mode(step, phase)
             if not self.refinement.clock.fits("render", _loss_adjoint_operation(lpips_mode), "adam", "render", "score"):
                 self.refinement.stop_reason = "deadline"
@@ -768,6 +784,7 @@ class _Descent:
                 return False
             if not self._take_step(step, phase, lpips_mode):
                 return self.stalled
+            step += 1
         self.refinement.check_ceiling(self.stage)
         self._score_end(len(self.steps))
         return False
@@ -806,6 +823,7 @@ class _Descent:
     def _score(self, rendering: Rendering, step: int, entry: dict) -> dict:
         """A checkpoint's exact score, into the trace and the best; sets ``stalled``."""
         components = self.refinement.refiner.score(rendering)
+        self.scored_after = step
         entry["score"] = components["mean"]
         self.refinement.consider(components, self.stage, step, self.z_um, self.log_energy, rendering.levels)
         self.best_after.append(self.refinement.best.score)
@@ -844,8 +862,9 @@ class _Descent:
         self.refinement.report(self.stage)
 
     def _score_end(self, step: int) -> None:
-        """Score the last iterate (not rendered yet) after a run of ``step`` > 0 steps, if that still fits."""
-        if not (step and self.refinement.clock.fits("render", "score")):
+        """Score the last iterate (not rendered yet) after a run of ``step`` > 0 steps, if that still fits and a
+        hinge phase's last iteration has not scored it."""
+        if not (step and step != self.scored_after and self.refinement.clock.fits("render", "score")):
             return
         refiner = self.refinement.refiner
         refiner.round_as_saved(self.z_um, self.log_energy)
@@ -854,6 +873,73 @@ class _Descent:
         self.refinement.log(self.stage, step, components["mean"])
         self.refinement.consider(components, self.stage, step, self.z_um, self.log_energy, rendering.levels)
         self.refinement.report(self.stage)
+
+
+class _HingeRun:
+    """A hinge phase's L-BFGS iterations within a :class:`_Descent` (:mod:`octcl.host.stage3.hinge`).
+
+    Each iteration counts as a step of the descent: it is scored at the
+    descent's checkpoints, reported, and starts only while an iteration and
+    a score still fit the deadline (one iteration is a render and an
+    adjoint, more where its line search halves the step).
+    """
+
+    def __init__(self, descent: _Descent, step: int):
+        self.descent, self.step = descent, step
+        self.refinement = descent.refinement
+        self.unknowns = HingeUnknowns(self.refinement.plan.config)
+
+    def run(self, length: int) -> int:
+        """Up to ``length`` iterations; the descent's next step. The iterate ends in the descent's (z, u)."""
+        refiner = self.refinement.refiner
+        start = refiner.render(self.descent.z_um, self.descent.log_energy, for_adjoint=False)
+        self.hinge = LevelHinge(self.refinement.plan.levels, start.a_scans)
+        self.end, self.began = self.step + length, time.perf_counter()
+        if self.end > self.step and self._fits():
+            x, _ = lbfgs.minimise(self._loss_and_gradient, self.unknowns.pack(self.descent.z_um,
+                                  self.descent.log_energy), length, HINGE_MEMORY, self._after_iteration)
+            self._set_iterate(x)
+        return self.end
+
+    def _loss_and_gradient(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        refiner = self.refinement.refiner
+        z_um, log_energy = self.unknowns.unpack(x)
+        refiner.constrain(z_um, log_energy)
+        rendering = refiner.render(z_um, log_energy, for_adjoint=True)
+        loss, a_bar = self.hinge(rendering.a_scans)
+        grad_u, grad_z = refiner._timed("adjoint", refiner.kernels.adjoint, a_bar)
+        return loss, self.unknowns.gradient(grad_u, grad_z)
+
+    def _set_iterate(self, x: np.ndarray) -> None:
+        z_um, log_energy = self.unknowns.unpack(x)
+        self.refinement.refiner.constrain(z_um, log_energy)
+        self.descent.z_um[:], self.descent.log_energy[:] = z_um, log_energy
+
+    def _fits(self) -> bool:
+        if self.refinement.clock.fits("render", "hinge", "render", "score"):
+            return True
+        self.refinement.stop_reason = "deadline"
+        return False
+
+    def _after_iteration(self, x: np.ndarray) -> None:
+        """lbfgs's callback: count, time, score at a checkpoint and at the end; StopIteration where the descent
+        stops here."""
+        self.refinement.clock.record("hinge", time.perf_counter() - self.began)
+        self.refinement.iterations += 1
+        self.step += 1
+        entry = self.refinement.log(self.descent.stage, self.step)
+        last = self.step == self.end or not self._fits()
+        if (self.step in self.descent.checkpoints or last) and self.refinement.clock.fits("render", "score"):
+            self._set_iterate(x)
+            refiner = self.refinement.refiner
+            refiner.round_as_saved(self.descent.z_um, self.descent.log_energy)
+            rendering = refiner.render(self.descent.z_um, self.descent.log_energy, for_adjoint=False)
+            self.descent._score(rendering, self.step, entry)
+        self.refinement.report(self.descent.stage)
+        if last or self.refinement.stop_reason or self.descent.stalled:
+            raise StopIteration
+        self.refinement.check_ceiling(self.descent.stage)
+        self.began = time.perf_counter()
 
 
 __all__ = ["Checkpoint", "FALL_LR_FACTOR", "MAX_ENERGY_PCT", "Phase", "RefineProgress", "RefineResult", "RefineSchedule",

@@ -27,8 +27,12 @@ LPIPS_TERMS = {"struct_lpips": "Struct", "oac_lpips": "OAC", "sc_lpips": "SC", "
 #: What a phase's loss computes (:attr:`Phase.terms`): every weighted term; all but the LPIPS ones (about a third
 #: of the cost); the pixel term alone (no maps, no network: a step of the tissue regime took 0.13–0.14 s where the
 #: full loss's took 0.50–0.56 s, docs/benchmarks.md "Stage 3 in the tissue regime"); the level term alone (as
-#: cheap; :mod:`octcl.host.stage3.loss`).
-PHASE_TERMS = ("all", "no_lpips", "pixel", "level")
+#: cheap; :mod:`octcl.host.stage3.loss`); or no loss of :mod:`~octcl.host.stage3.loss` at all but the hinge of each
+#: pixel's magnitude on its aimed level's interval, by L-BFGS instead of Adam (:data:`HINGE`).
+PHASE_TERMS = ("all", "no_lpips", "pixel", "level", "hinge")
+#: The terms of a phase of L-BFGS iterations on the levels' hinge (:mod:`octcl.host.stage3.hinge`): its steps have
+#: no learning rates (both 0) and compare the rendering with the aimed levels.
+HINGE = "hinge"
 #: The phases whose loss is one term alone, compared with the aimed levels (:meth:`LossWeights.for_terms`).
 SINGLE_TERM_PHASES = ("pixel", "level")
 
@@ -80,6 +84,8 @@ class LossWeights:
         or the level term alone at weight 1 (alone, its weight only scales the gradient, which Adam's steps
         ignore)."""
         _check_terms(terms)
+        if terms == HINGE:
+            raise ValueError("a hinge phase has no loss weights: it fits the levels (octcl.host.stage3.hinge)")
         if terms in SINGLE_TERM_PHASES:
             return LossWeights(**{weight.name: float(weight.name == terms) for weight in dataclasses.fields(self)})
         return self if terms == "all" else self.without_lpips()
@@ -87,19 +93,19 @@ class LossWeights:
 
 @dataclass(frozen=True)
 class Phase:
-    """A run of Adam iterations at fixed learning rates.
+    """A run of Adam iterations at fixed learning rates, or of L-BFGS iterations on the levels' hinge.
 
     Attributes
     ----------
     iterations : int
-        Adam steps.
+        Adam steps (L-BFGS iterations in a :data:`HINGE` phase).
     lr_z_um : float
         Step length of the depths, in µm.
     lr_u : float
         Step length of u = ln E (dimensionless).
     terms : str
         Which of the loss's terms it computes (:data:`PHASE_TERMS`, :meth:`LossWeights.for_terms`): ``all``,
-        ``no_lpips`` or ``pixel``.
+        ``no_lpips``, ``pixel`` or ``level``; ``hinge``: L-BFGS on the levels' hinge (:data:`HINGE`), both rates 0.
     """
 
     iterations: int
@@ -113,6 +119,9 @@ class Phase:
         _check_terms(self.terms)
         if not (self.lr_z_um >= 0 and self.lr_u >= 0):
             raise ValueError(f"learning rates must be ≥ 0, got {self.lr_z_um}, {self.lr_u}")
+        if self.terms == HINGE and (self.lr_z_um or self.lr_u):
+            raise ValueError(f"a hinge phase takes L-BFGS steps, without learning rates: give 0 and 0, got "
+                             f"{self.lr_z_um}, {self.lr_u}")
 
     @property
     def lpips(self) -> bool:
@@ -295,5 +304,5 @@ class RefineSchedule:
         return dataclasses.replace(self, max_iterations=iterations)
 
 
-__all__ = ["FALL_LR_FACTOR", "LPIPS_TERMS", "LossWeights", "MAX_ENERGY_PCT", "MIN_GAIN", "PHASE_TERMS", "Phase",
+__all__ = ["FALL_LR_FACTOR", "HINGE", "LPIPS_TERMS", "LossWeights", "MAX_ENERGY_PCT", "MIN_GAIN", "PHASE_TERMS", "Phase",
            "RefineSchedule", "SINGLE_TERM_PHASES", "STOP_RULES"]

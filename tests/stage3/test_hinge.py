@@ -1,0 +1,126 @@
+"""Stage 3's hinge phase: the levels' hinge on |A|, its unknowns, and L-BFGS iterations within a refinement."""
+
+import numpy as np
+import pytest
+
+from octcl.config import DEFAULT_CONFIG
+from octcl.host.stage1.levels import INTERVAL_MARGIN, level_magnitude_bounds
+from octcl.host.stage3.hinge import HingeUnknowns, LevelHinge
+from octcl.host.stage3.refine import Phase, RefineSchedule, refine, saved_precision
+from octcl.host.stage3.schedule import HINGE, LossWeights
+from octcl.phantom import Phantom
+from octcl.render import render
+
+
+def _levels_and_a_scans(seed=0, shape=(6, 7)):
+    rng = np.random.default_rng(seed)
+    a_scans = rng.normal(size=shape) + 1j * rng.normal(size=shape)
+    levels = rng.integers(1, 255, size=shape).astype(np.uint8)
+    levels.flat[0] = 255
+    return levels, a_scans
+
+
+def test_the_hinge_is_anchored_at_the_start_and_zero_inside_every_interval():
+    levels, a_scans = _levels_and_a_scans()
+    hinge = LevelHinge(levels, a_scans)
+    scale = np.abs(a_scans).max()
+    lower, upper = level_magnitude_bounds(levels, INTERVAL_MARGIN)
+    anchor = np.unravel_index(np.argmax(np.where(levels == 255, np.abs(a_scans), -1)), levels.shape)
+    assert hinge.lower[anchor] == hinge.upper[anchor] == scale
+    others = np.ones(levels.shape, dtype=bool)
+    others[anchor] = False
+    np.testing.assert_allclose(hinge.lower[others], scale * lower[others])
+    np.testing.assert_allclose(hinge.upper[others], scale * upper[others])
+    # A rendering inside every interval: no loss, no gradient, whatever its phases.
+    inside = 0.5 * (hinge.lower + hinge.upper) * np.exp(1j * np.angle(a_scans))
+    inside[anchor] = scale  # at the anchor's bound exactly (a real number: its magnitude is not rounded)
+    loss, a_bar = hinge(inside)
+    assert loss == 0 and not a_bar.any()
+
+
+def test_the_hinge_gradient_matches_finite_differences():
+    levels, a_scans = _levels_and_a_scans(seed=1)
+    hinge = LevelHinge(levels, a_scans * 1.3)  # bounds of another rendering: most pixels outside theirs
+    loss, a_bar = hinge(a_scans)
+    assert loss > 0
+    step = 1e-6
+    for index in np.ndindex(levels.shape):
+        for direction, part in ((1.0, a_bar[index].real), (1j, a_bar[index].imag)):
+            moved = a_scans.copy()
+            moved[index] += step * direction
+            up = hinge(moved)[0]
+            moved[index] -= 2 * step * direction
+            assert (up - hinge(moved)[0]) / (2 * step) == pytest.approx(part, rel=1e-5, abs=1e-9)
+
+
+def test_the_unknowns_are_log_amplitude_and_carrier_phase():
+    rng = np.random.default_rng(2)
+    z_um, log_energy = rng.uniform(0, 1536, 9), rng.uniform(-20, 4, 9)
+    unknowns = HingeUnknowns(DEFAULT_CONFIG)
+    x = unknowns.pack(z_um, log_energy)
+    np.testing.assert_allclose(x[:9], log_energy / 2)  # ln a, a = sqrt(E)·const
+    np.testing.assert_allclose(x[9:], 2 * DEFAULT_CONFIG.k0_rad_per_um * z_um)  # the carrier's phase
+    back_z, back_u = unknowns.unpack(x)
+    np.testing.assert_allclose(back_z, z_um, rtol=1e-15)
+    np.testing.assert_allclose(back_u, log_energy, rtol=1e-15)
+    # The chain rule: f(z, u) = Σ c·z + d·u has ∂f/∂x = (2·d, c/(2·k0)); checked against a difference in x.
+    c, d = rng.normal(size=9), rng.normal(size=9)
+    gradient = unknowns.gradient(d, c)
+
+    def f(vector):
+        z, u = unknowns.unpack(vector)
+        return float(c @ z + d @ u)
+
+    direction = rng.normal(size=18)
+    assert (f(x + 1e-3 * direction) - f(x - 1e-3 * direction)) / 2e-3 == pytest.approx(gradient @ direction)
+
+
+def test_a_hinge_phase_takes_no_learning_rates_and_no_loss_weights():
+    Phase(5, 0.0, 0.0, terms=HINGE)
+    with pytest.raises(ValueError, match="without learning rates"):
+        Phase(5, 0.001, 0.0, terms=HINGE)
+    with pytest.raises(ValueError, match="no loss weights"):
+        LossWeights().for_terms(HINGE)
+
+
+@pytest.fixture(scope="module")
+def shadowed_start():
+    """A phantom with real shadowing, its rendering's levels as the aim, and the phantom moved off them: each
+    scatterer's energy by a random ±20 % and its depth by up to ±0.02 µm (a carrier turn of ±0.19 rad)."""
+    rng = np.random.default_rng(3)
+    count = 20_000
+    x_um = rng.uniform(-1536, 1536, count)
+    z_um = rng.uniform(40, 900, count)
+    energy = rng.uniform(0.01, 0.2, count)
+    truth = Phantom(x_um, np.zeros(count), z_um, energy)
+    aim = render(truth).levels
+    moved = Phantom(x_um, np.zeros(count), z_um + rng.uniform(-0.02, 0.02, count),
+                    energy * rng.uniform(0.8, 1.2, count))
+    return Phantom(*(saved_precision(getattr(moved, name)) for name in ("x_um", "y_um", "z_um", "energy_pct"))), aim
+
+
+def test_a_hinge_phase_puts_pixels_back_at_their_levels(shadowed_start):
+    """From a phantom moved off its rendering's levels, the hinge phase's L-BFGS iterations put more pixels at
+    their level and score higher; each iteration counts as a step, the last is scored, z and E stay in bounds."""
+    start, aim = shadowed_start
+    at_start = np.mean(render(start).levels == aim)
+    schedule = RefineSchedule(phases=(Phase(15, 0.0, 0.0, terms=HINGE),), restarts=(), score_every=5)
+    result = refine(start, aim, schedule, aim=aim, threads=1)
+    assert result.iterations == 15
+    assert [entry["iteration"] for entry in result.trace if entry["score"] is not None] == [0, 5, 10, 15]
+    assert result.components["mean"] > result.initial_components["mean"]
+    at_end = np.mean(render(result.phantom).levels == aim)
+    assert at_end > at_start + 0.1, (at_start, at_end)
+    assert result.phantom.energy_pct.max() <= 100 and result.phantom.z_um.min() >= 0
+
+
+def test_adam_phases_go_on_after_a_hinge_phase(shadowed_start):
+    """A hinge phase between Adam phases: the steps add up, and the Adam phase after it moves the iterate on."""
+    start, aim = shadowed_start
+    schedule = RefineSchedule(phases=(Phase(2, 0.001, 0.02, terms="pixel"), Phase(3, 0.0, 0.0, terms=HINGE),
+                                      Phase(2, 0.001, 0.02, terms="pixel")), restarts=(), score_every=100)
+    result = refine(start, aim, schedule, aim=aim, threads=1)
+    assert result.iterations == 7
+    assert [entry["iteration"] for entry in result.trace][-1] == 7
+    losses = [entry["loss"] for entry in result.trace if entry["loss"] is not None]
+    assert len(losses) == 4  # the Adam steps' losses; the hinge's iterations log none
