@@ -23,14 +23,13 @@ them alike (in (u, z µm) a unit step in z turns the carrier by 9.7 rad).
 Why L-BFGS. Adam's step is a fixed length in each unknown: the tissue
 regime's pixel phase (lr_u 0.02, about one level of a pixel's amplitude)
 leaves pixels one or two levels off, and the full loss after it holds them
-there. From the phantom of a whole default tissue run of a skin phantom's
-scan (seed 8: 172 s, 92.8 % of pixels at their level, score 0.99988), 60
-iterations of this phase took it to 97.4 % and 0.99994 in 11 s, 200 to
-98.5 % and 0.99996 (scratch runs on two Zen 4 cores; whole runs in
-docs/benchmarks.md, "Stage 3's hinge phase"). From the decode itself
-(57 % at their level) it gains more slowly than Adam's pixel phase
-(84 % after 140 iterations, 27 s), hence after it. Unknowns (u, z µm)
-instead of (ln a, φ): about the same (98.1 % against 97.9 % after 100).
+there (a whole default tissue run of a skin phantom's scan, seed 8: 172 s,
+92.8 % of pixels at their level, 0.99988). Stage 3 alone for 21 s from the
+tissue start, the hinge between the pixel phase and the full loss: skin 8
+0.99985 → 0.99988 (93.4 → 95.4 % at their level), orange.png 0.99930 →
+0.99966; after 60 pixel steps instead of 120 it scored lower on all three
+targets tried (``scripts/bench_tissue_refine.py --phases``, two Zen 4 cores;
+docs/benchmarks.md, "Stage 3's hinge phase", with whole runs).
 """
 
 from __future__ import annotations

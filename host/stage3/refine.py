@@ -13,6 +13,10 @@ The unknowns are, per scatterer j, the depth z_j (µm) and u_j = ln E_j (E in
    ICLR 2015) on (z, u), then the constraints 0 ≤ z ≤ Nz·Δz and
    ln E_floor ≤ u ≤ ln 100.
 
+A phase of :data:`~octcl.host.stage3.schedule.HINGE` terms takes L-BFGS
+iterations instead, on the levels' hinge (:mod:`octcl.host.stage3.hinge`,
+:class:`_HingeRun`): each counts as a step, and is scored and timed as one.
+
 Adam divides each parameter's step by the root mean square of its own
 gradient, so a learning rate is a step length in the parameter's own unit:
 ``lr_z_um`` in µm and ``lr_u`` in nepers of energy (a step of 0.01 in u
@@ -773,6 +777,9 @@ class _Descent:
                 length = next((end for end in range(step, len(self.steps)) if self.steps[end] is not phase),
                               len(self.steps)) - step
                 step = _HingeRun(self, step).run(length)
+                if self.refinement.stop_reason == "deadline":
+                    self._score_end(step)
+                    return False
                 if self.refinement.stop_reason or self.stalled:
                     return self.stalled
                 self.adam = self._fresh_adam()  # the moments are those of an iterate the hinge has moved from
@@ -890,16 +897,17 @@ class _HingeRun:
         self.unknowns = HingeUnknowns(self.refinement.plan.config)
 
     def run(self, length: int) -> int:
-        """Up to ``length`` iterations; the descent's next step. The iterate ends in the descent's (z, u)."""
+        """Up to ``length`` iterations; the descent's next step (the step reached where the deadline stopped
+        them). The iterate ends in the descent's (z, u)."""
         refiner = self.refinement.refiner
         start = refiner.render(self.descent.z_um, self.descent.log_energy, for_adjoint=False)
         self.hinge = LevelHinge(self.refinement.plan.levels, start.a_scans)
         self.end, self.began = self.step + length, time.perf_counter()
-        if self.end > self.step and self._fits():
+        if self._fits():
             x, _ = lbfgs.minimise(self._loss_and_gradient, self.unknowns.pack(self.descent.z_um,
                                   self.descent.log_energy), length, HINGE_MEMORY, self._after_iteration)
             self._set_iterate(x)
-        return self.end
+        return self.step if self.refinement.stop_reason == "deadline" else self.end
 
     def _loss_and_gradient(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         refiner = self.refinement.refiner

@@ -1,5 +1,7 @@
 """Stage 3's hinge phase: the levels' hinge on |A|, its unknowns, and L-BFGS iterations within a refinement."""
 
+import time
+
 import numpy as np
 import pytest
 
@@ -124,3 +126,17 @@ def test_adam_phases_go_on_after_a_hinge_phase(shadowed_start):
     assert [entry["iteration"] for entry in result.trace][-1] == 7
     losses = [entry["loss"] for entry in result.trace if entry["loss"] is not None]
     assert len(losses) == 4  # the Adam steps' losses; the hinge's iterations log none
+
+
+@pytest.mark.clock
+def test_a_hinge_phase_keeps_the_deadline(shadowed_start):
+    """Its iterations stop where the next one and a score would end past the deadline; the last is scored."""
+    start, aim = shadowed_start
+    schedule = RefineSchedule(phases=(Phase(10_000, 0.0, 0.0, terms=HINGE),), restarts=(), score_every=10_000)
+    began = time.monotonic()
+    result = refine(start, aim, schedule, aim=aim, threads=1, deadline=began + 4.0)
+    elapsed = time.monotonic() - began
+    assert result.stopped_by_deadline and 0 < result.iterations < 10_000
+    assert elapsed < 4.0 + 1.0
+    scored = [entry["iteration"] for entry in result.trace if entry["score"] is not None]
+    assert scored == [0, result.iterations]
