@@ -901,8 +901,10 @@ class _HingeRun:
         them). The iterate ends in the descent's (z, u)."""
         refiner = self.refinement.refiner
         start = refiner.render(self.descent.z_um, self.descent.log_energy, for_adjoint=False)
-        self.hinge = LevelHinge(self.refinement.plan.levels, start.a_scans)
         self.end, self.began = self.step + length, time.perf_counter()
+        if not np.abs(start.a_scans).any():  # a dark rendering has no pixel to anchor the levels at: nothing to fit
+            return self.end
+        self.hinge = LevelHinge(self.refinement.plan.levels, start.a_scans)
         if self._fits():
             x, _ = lbfgs.minimise(self._loss_and_gradient, self.unknowns.pack(self.descent.z_um,
                                   self.descent.log_energy), length, HINGE_MEMORY, self._after_iteration)

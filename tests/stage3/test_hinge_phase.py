@@ -140,3 +140,17 @@ def test_a_hinge_phase_keeps_the_deadline(shadowed_start):
     assert elapsed < 4.0 + 1.0
     scored = [entry["iteration"] for entry in result.trace if entry["score"] is not None]
     assert scored == [0, result.iterations]
+
+
+def test_a_hinge_phase_from_a_dark_rendering_is_skipped():
+    """Scatterers that no A-scan sees render nothing: the phase has no pixel to anchor the levels at, and the
+    schedule goes on past it (the Adam phase after it runs) instead of failing."""
+    count = 50
+    dark = Phantom(np.full(count, 5000.0), np.zeros(count), np.linspace(100, 900, count), np.full(count, 1.0))
+    aim = np.zeros((256, 512), dtype=np.uint8)
+    aim[100, 200] = 255
+    schedule = RefineSchedule(phases=(Phase(4, 0.0, 0.0, terms=HINGE), Phase(2, 0.001, 0.02, terms="pixel")),
+                              restarts=(), score_every=100)
+    result = refine(dark, aim, schedule, aim=aim, threads=1)
+    assert result.iterations == 2
+    assert [entry["iteration"] for entry in result.trace][-1] == 6
