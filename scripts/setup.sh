@@ -46,8 +46,8 @@ if ! cat setup.cfg octcl/__init__.py | cmp -s - "$VENV/octcl-installed-from"; th
 fi
 # Byte-code, written once here: where PYTHONDONTWRITEBYTECODE is set (as in many container images) Python would
 # otherwise compile every module it imports at every start and write none. On two Zen 4 cores a default
-# `octcl invert` of orange.png took 7.8-9.0 s that way and 5.3-5.5 s with the byte-code written; compiling
-# the whole venv in parallel takes 17 s there. octcl's own sources (an editable install) are compiled at
+# `octcl invert` of orange.png took 6.9-7.4 s that way and 4.8-5.5 s with the byte-code written, and this
+# script took 21 s compiling the venv (scripts/bench_bytecode.sh). octcl's own sources (an editable install) are compiled at
 # every run of this script: compileall skips those up to date.
 compile_venv() {
     env -u PYTHONDONTWRITEBYTECODE "$VENV/bin/python" -m compileall -q -j 0 "$@" >/dev/null 2>&1 || true

@@ -413,8 +413,12 @@ class _Refiner:
         start = time.perf_counter()
         value = self._timed("loss", self.loss(terms), rendering.display, lpips_mode)
         self.threads.after_call((terms, lpips_mode), time.perf_counter() - start)
-        grad_u, grad_z = self._timed("adjoint", self.kernels.adjoint, display_vjp(rendering, value.grad_display))
+        grad_u, grad_z = self.adjoint(display_vjp(rendering, value.grad_display))
         return value, grad_u, grad_z
+
+    def adjoint(self, a_scan_bar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(∂loss/∂u, ∂loss/∂z) of the last :meth:`render` (with for_adjoint), given Ā = ∂loss/∂Re A + i·∂loss/∂Im A."""
+        return self._timed("adjoint", self.kernels.adjoint, a_scan_bar)
 
     def score(self, rendering: Rendering) -> dict:
         start = time.perf_counter()
@@ -917,7 +921,7 @@ class _HingeRun:
         refiner.constrain(z_um, log_energy)
         rendering = refiner.render(z_um, log_energy, for_adjoint=True)
         loss, a_bar = self.hinge(rendering.a_scans)
-        grad_u, grad_z = refiner._timed("adjoint", refiner.kernels.adjoint, a_bar)
+        grad_u, grad_z = refiner.adjoint(a_bar)
         return loss, self.unknowns.gradient(grad_u, grad_z)
 
     def _set_iterate(self, x: np.ndarray) -> None:

@@ -117,7 +117,7 @@ def test_a_hinge_phase_puts_pixels_back_at_their_levels(shadowed_start):
 
 
 def test_adam_phases_go_on_after_a_hinge_phase(shadowed_start):
-    """A hinge phase between Adam phases: the steps add up, and the Adam phase after it moves the iterate on."""
+    """A hinge phase between Adam phases: the steps add up, and the Adam phase after it takes its steps."""
     start, aim = shadowed_start
     schedule = RefineSchedule(phases=(Phase(2, 0.001, 0.02, terms="pixel"), Phase(3, 0.0, 0.0, terms=HINGE),
                                       Phase(2, 0.001, 0.02, terms="pixel")), restarts=(), score_every=100)
