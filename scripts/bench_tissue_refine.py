@@ -14,16 +14,8 @@ at the aimed one are printed, one JSON row per run:
 - ``pixel``: the pixel term alone at the rates of ``--pixel-rates``
   (lr_z_um, lr_u), as long as the clock lets it;
 - ``tissue``: :data:`octcl.host.pipeline.invert.TISSUE_SCHEDULE`, the
-  tissue regime's default, its pixel phase ``--pixel-steps`` long when
-  given (one run for each length);
-- ``tissue-no-lpips``: the same with ``--no-lpips-steps`` steps of the loss
-  without its LPIPS terms (a fifth of a full step's cost) between the pixel
-  phase and the full loss (one run for each length);
-- ``tissue-lpips-every``: the same as ``tissue`` with the LPIPS terms'
-  gradient computed every ``--lpips-every`` steps and reused between
-  (:attr:`~octcl.host.stage3.schedule.RefineSchedule.lpips_every`);
-- ``tissue-level``: the same as ``tissue`` with its pixel phase's pixel term
-  replaced by the level term (a ``level`` phase, :mod:`octcl.host.stage3.loss`);
+  tissue regime's default, its first pixel phase ``--pixel-steps`` long
+  when given (one run for each length);
 - with ``--phases SPEC ...``, instead of named schedules, the tissue
   regime's schedule with its main phases replaced by each SPEC in turn:
   phases ``TERMS:ITERATIONS:LR_Z_UM:LR_U`` joined by commas (its restarts
@@ -37,13 +29,13 @@ Example::
     python scripts/bench_tissue_refine.py --skin 5 --seconds 40 --out OUT
     python scripts/bench_tissue_refine.py --skin 5 --schedules tissue --pixel-steps 500 --seconds 120 --out OUT
     python scripts/bench_tissue_refine.py --skin 6 --real ../shared/data/real/orange.png --schedules tissue \
-        --pixel-steps 250 120 60 --seconds 20 --out OUT
-    python scripts/bench_tissue_refine.py --skin 6 --real ../shared/data/real/orange.png OUT/targets/plain_skin_1.png \
-        --schedules tissue tissue-no-lpips tissue-lpips-every --no-lpips-steps 60 150 --seconds 30 --out OUT
-    python scripts/bench_tissue_refine.py --skin 6 7 --real ../shared/data/real/orange.png OUT/targets/plain_skin_0.png \
-        --schedules tissue tissue-level --seconds 16 --out OUT
+        --pixel-steps 250 100 60 --seconds 20 --out OUT
     python scripts/bench_tissue_refine.py --skin 6 --real ../shared/data/real/orange.png --seconds 21 --out OUT \
-        --phases pixel:120:0.001:0.02,all:250:0.0005:0.005 pixel:120:0.001:0.02,pixel:80:0.0005:0.005,all:250:0.00025:0.0025
+        --phases pixel:120:0.001:0.02,hinge:300:0:0 pixel:100:0.001:0.02,pixel:40:0.00025:0.005,hinge:300:0:0
+
+Three more named schedules (``tissue-no-lpips``, ``tissue-lpips-every``,
+``tissue-level``) varied the full loss that ended the tissue schedule until
+octcl 0.8.7; they are in this script up to 0.8.8.
 """
 
 from __future__ import annotations
@@ -68,28 +60,18 @@ from octcl.render import render
 from octcl.torch_import import import_torch
 
 #: Schedules by name (module docstring); ``pixel`` takes its rates from the command line.
-SCHEDULES = ("full", "pixel", "tissue", "tissue-no-lpips", "tissue-lpips-every", "tissue-level")
+SCHEDULES = ("full", "pixel", "tissue")
 
 
-def schedule_named(name: str, pixel_rates: tuple[float, float], steps: int | None,
-                   lpips_every: int = 1) -> RefineSchedule:
-    """The schedule called ``name`` (module docstring); ``steps`` the pixel phase's length (``tissue``) or the
-    loss-without-LPIPS phase's (``tissue-no-lpips``)."""
+def schedule_named(name: str, pixel_rates: tuple[float, float], steps: int | None) -> RefineSchedule:
+    """The schedule called ``name`` (module docstring); ``steps`` the first pixel phase's length (``tissue``)."""
     if name == "full":
         return RefineSchedule()
     if name == "pixel":
         return RefineSchedule(phases=(Phase(100_000, *pixel_rates, terms="pixel"),), restarts=())
-    first, *rest = TISSUE_SCHEDULE.phases
-    if name == "tissue-no-lpips":
-        main = rest[0]
-        middle = Phase(steps, main.lr_z_um, main.lr_u, terms="no_lpips")
-        return dataclasses.replace(TISSUE_SCHEDULE, phases=(first, middle, *rest))
-    if name == "tissue-lpips-every":
-        return dataclasses.replace(TISSUE_SCHEDULE, lpips_every=lpips_every)
-    if name == "tissue-level":
-        return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, terms="level"), *rest))
     if steps is None:
         return TISSUE_SCHEDULE
+    first, *rest = TISSUE_SCHEDULE.phases
     return dataclasses.replace(TISSUE_SCHEDULE, phases=(dataclasses.replace(first, iterations=steps), *rest))
 
 
@@ -124,14 +106,13 @@ def bench(name: str, target: Path, runs: list[tuple[dict, RefineSchedule]], seco
                           "aim_share": aim_share}), flush=True)
 
 
-def named_runs(names: list[str], pixel_rates, lengths: dict, lpips_every: int) -> list[tuple[dict, RefineSchedule]]:
-    """(label, schedule) of each named schedule, one run for each of its lengths."""
+def named_runs(names: list[str], pixel_rates, pixel_steps: list) -> list[tuple[dict, RefineSchedule]]:
+    """(label, schedule) of each named schedule, ``tissue`` once for each of ``pixel_steps``."""
     runs = []
     for schedule in names:
-        for steps in lengths.get(schedule, [None]):
-            runs.append(({"schedule": schedule, "pixel_rates": pixel_rates, "steps_of_phase": steps,
-                          "lpips_every": lpips_every if schedule == "tissue-lpips-every" else None},
-                         schedule_named(schedule, pixel_rates, steps, lpips_every)))
+        for steps in pixel_steps if schedule == "tissue" else [None]:
+            runs.append(({"schedule": schedule, "pixel_rates": pixel_rates, "steps_of_phase": steps},
+                         schedule_named(schedule, pixel_rates, steps)))
     return runs
 
 
@@ -144,10 +125,7 @@ def main(argv=None) -> None:
     parser.add_argument("--pixel-rates", nargs=2, type=float, default=(0.001, 0.02), metavar=("LR_Z_UM", "LR_U"),
                         help="the pixel schedule's learning rates (default 0.001 0.02)")
     parser.add_argument("--pixel-steps", nargs="+", type=int, default=[None],
-                        help="the tissue schedule's pixel steps, one run each (default its own)")
-    parser.add_argument("--no-lpips-steps", nargs="+", type=int, default=[60],
-                        help="tissue-no-lpips: its phase without the LPIPS terms, one run each (default 60)")
-    parser.add_argument("--lpips-every", type=int, default=3, help="tissue-lpips-every's period (default 3)")
+                        help="the tissue schedule's first pixel phase's steps, one run each (default its own)")
     parser.add_argument("--phases", nargs="+", metavar="SPEC",
                         help="instead of --schedules: the tissue schedule's main phases, TERMS:ITERATIONS:LR_Z_UM:LR_U "
                              "joined by commas, one run each")
@@ -162,8 +140,7 @@ def main(argv=None) -> None:
     if args.phases:
         runs = [({"phases": spec}, phases_schedule(spec)) for spec in args.phases]
     else:
-        runs = named_runs(args.schedules, tuple(args.pixel_rates),
-                          {"tissue": args.pixel_steps, "tissue-no-lpips": args.no_lpips_steps}, args.lpips_every)
+        runs = named_runs(args.schedules, tuple(args.pixel_rates), args.pixel_steps)
     for name, target in targets:
         bench(name, target, runs, args.seconds, args.out)
 

@@ -178,7 +178,17 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
 #: their level again: a default run of skin 11 scored 0.999932 at the hinge's end (44 s), then 0.99982–0.99987
 #: over 180 s of the full loss and its restarts; with hinge restarts instead (each from the best, fresh L-BFGS
 #: memory, repeated while one gains 1e−5), the same 0.999932 in 74 s, and orange.png 0.99987 in 84 s.
-TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(120, 0.001, 0.02, terms="pixel"), Phase(300, 0.0, 0.0, terms="hinge")),
+#: The pixel phase ends at a quarter of its rates: at (0.001, 0.02) to its end, its loss jumped between steps (Adam's
+#: fixed step moves every scatterer about a level, and the brightest pixel's moves shift the whole display), and
+#: the hinge began from pixels one or two levels off. 100 steps, then 40 at (0.00025, 0.005), against 120 at the
+#: full rates, stage 3 alone for 21 s from each target's tissue start (``scripts/bench_tissue_refine.py --phases``,
+#: two Zen 4 cores): plain_skin_0–5 0.999777 / 0.999784 / 0.999761 / 0.999766 / 0.999777 / 0.999782 → 0.999819 /
+#: 0.999794 / 0.999802 / 0.999811 / 0.999812 / 0.999776, orange.png 0.999656 → 0.999667, with 0.4–3.7 points more
+#: of their pixels at the target's level; 80 then 40 steps, the second phase at half the rates, or three phases
+#: gained less on most (docs/benchmarks.md, "The pixel phase ends at a quarter of its rates").
+TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(100, 0.001, 0.02, terms="pixel"),
+                                         Phase(40, 0.00025, 0.005, terms="pixel"),
+                                         Phase(300, 0.0, 0.0, terms="hinge")),
                                  restarts=(Phase(60, 0.0, 0.0, terms="hinge"),))
 #: torch's thread count in a fixed-schedule run unless given. The thread
 #: count changes no bit of the result (docs/reproducibility.md), only the
