@@ -13,7 +13,7 @@ from octcl._io import GREY_LUT, read_png_rgb, read_scan
 from octcl._reference import quantise
 from octcl.host.stage1.levels import display_interval_of_level
 from octcl.host.stage3.loss import LEVEL_MARGIN, QUANTISER_SLOPE, DisplayLoss, ExactScore, LossWeights, scan_of_levels
-from octcl.host.stage3.refine import MAX_ENERGY_PCT, Phase, RefineSchedule, refine, saved_precision
+from octcl.host.stage3.refine import MAX_ENERGY_PCT, Phase, RefineClock, RefineSchedule, refine, saved_precision
 from octcl.host.pipeline.target import read_target
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.scorer import COMPONENTS, score
@@ -579,3 +579,14 @@ def test_the_loss_is_the_same_whatever_thread_count_built_it(layers_target):
         torch.set_num_threads(previous)
     assert values[1].loss == values[2].loss
     np.testing.assert_array_equal(values[1].grad_display, values[2].grad_display)
+
+
+def test_the_clock_keeps_the_last_duration_or_the_longest():
+    """An operation of steady cost is timed by its last call; one whose cost varies (a hinge iteration, one
+    evaluation or several) by its longest, so that what must follow it (the last iterate's score) still fits."""
+    clock = RefineClock(time.monotonic() + 10.0)
+    for seconds in (0.3, 0.1):
+        clock.record("render", seconds)
+        clock.record("hinge", seconds, longest=True)
+    assert clock.durations == {"render": 0.1, "hinge": 0.3}
+    assert clock.fits("hinge") and not clock.fits(*["hinge"] * 40)
