@@ -9,8 +9,10 @@ at the rendering's brightest pixel when the phase begins
 (:func:`octcl.host.stage1.levels.anchored_bounds`, scaled by that max|A|: the
 anchor pinned there, every other upper bound below it),
 
-    loss = ½·Σ_p dist(|A_p|, [l_p, u_p])²,
-    Ā_p = ∂loss/∂Re A_p + i·∂loss/∂Im A_p = (|A_p| − clip(|A_p|, l_p, u_p))·A_p/|A_p|,
+    loss = ½·Σ_p w_p·dist(|A_p|, [l_p, u_p])²,
+    Ā_p = ∂loss/∂Re A_p + i·∂loss/∂Im A_p = w_p·(|A_p| − clip(|A_p|, l_p, u_p))·A_p/|A_p|,
+
+(w_p = 1, but at the anchor where a run may weigh it more),
 
 and the scanner's adjoint (:meth:`octcl.device.scanner.ScannerKernels.adjoint`)
 takes Ā to ∂loss/∂u and ∂loss/∂z per scatterer, shadowing included.
@@ -51,23 +53,28 @@ class LevelHinge:
         The rendering whose brightest pixel at the highest aimed level anchors the bounds (|A| units).
     margin : float
         Share of each level's interval given up at each end (:func:`~octcl.host.stage1.levels.level_magnitude_bounds`).
+    anchor_weight : float
+        The anchor pixel's weight in the sum, every other pixel's being 1 (``scripts/bench_hinge_trace.py``
+        measures others: docs/benchmarks.md, "Where the hinge loses time").
     """
 
-    def __init__(self, aim: np.ndarray, start_a_scans: np.ndarray, margin: float = INTERVAL_MARGIN):
+    def __init__(self, aim: np.ndarray, start_a_scans: np.ndarray, margin: float = INTERVAL_MARGIN,
+                 anchor_weight: float = 1.0):
         magnitude = np.abs(start_a_scans)
         scale = float(magnitude.max())
         if not scale > 0:
             raise ValueError("the start rendering is dark: no pixel to anchor the levels' bounds at")
         lower, upper = anchored_bounds(aim, magnitude / scale, margin)
         self.lower, self.upper = lower * scale, upper * scale
+        self.weight = np.where(lower == upper, float(anchor_weight), 1.0)
 
     def __call__(self, a_scans: np.ndarray) -> tuple[float, np.ndarray]:
         """(loss, Ā) of a rendering's complex A-scans."""
         magnitude = np.abs(a_scans)
         residual = magnitude - np.clip(magnitude, self.lower, self.upper)
         with np.errstate(divide="ignore", invalid="ignore"):
-            a_bar = np.where(magnitude > 0, residual / magnitude, 0.0) * a_scans
-        return 0.5 * float((residual**2).sum()), a_bar
+            a_bar = np.where(magnitude > 0, self.weight * residual / magnitude, 0.0) * a_scans
+        return 0.5 * float((self.weight * residual**2).sum()), a_bar
 
 
 class HingeUnknowns:

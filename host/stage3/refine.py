@@ -910,7 +910,8 @@ class _HingeRun:
         self.end, self.began = self.step + length, time.perf_counter()
         if not np.abs(start.a_scans).any():  # a dark rendering has no pixel to anchor the levels at: nothing to fit
             return self.end
-        self.hinge = LevelHinge(self.refinement.plan.levels, start.a_scans)
+        self.hinge = LevelHinge(self.refinement.plan.levels, start.a_scans,
+                                anchor_weight=self.descent.schedule.hinge_anchor_weight)
         if self._fits():
             x, _ = lbfgs.minimise(self._loss_and_gradient, self.unknowns.pack(self.descent.z_um,
                                   self.descent.log_energy), length, HINGE_MEMORY, self._after_iteration)

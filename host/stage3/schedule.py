@@ -204,6 +204,12 @@ class RefineSchedule:
         has fallen. Along the main run the iterate's exact score moves by
         ±1e−4 to ±4e−4 between checkpoints while its best keeps rising (module
         docstring), so the default 1e−3 is 2.5 times the largest such move.
+    hinge_anchor_weight : float
+        The anchor pixel's weight in ``hinge`` phases' loss
+        (:class:`octcl.host.stage3.hinge.LevelHinge`), every other pixel's
+        being 1. A weight of 1000 took away the fall of the exact score
+        that a hinge phase begins with on a skin and slowed orange.png
+        (docs/benchmarks.md, "Where the hinge loses time"): 1 by default.
 
     These decisions follow the exact scores alone, never the clock, so
     fixed-schedule runs stay reproducible.
@@ -224,6 +230,7 @@ class RefineSchedule:
     lpips_every: int = 1
     max_falls: int = 2
     fall_tolerance: float = 1e-3
+    hinge_anchor_weight: float = 1.0
 
     def __post_init__(self):
         if self.score_every < 1:
@@ -246,6 +253,8 @@ class RefineSchedule:
             raise ValueError(f"max_falls must be a whole number ≥ 0, got {self.max_falls!r}")
         if not self.fall_tolerance >= 0:
             raise ValueError(f"fall_tolerance must be ≥ 0, got {self.fall_tolerance}")
+        if not self.hinge_anchor_weight > 0:
+            raise ValueError(f"hinge_anchor_weight must be > 0, got {self.hinge_anchor_weight}")
 
     def fixed_length(self) -> "RefineSchedule":
         """This schedule without adaptive stopping: every phase and restart runs its whole length."""

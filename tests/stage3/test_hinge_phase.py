@@ -40,12 +40,14 @@ def test_the_hinge_is_anchored_at_the_start_and_zero_inside_every_interval():
     assert loss == 0 and not a_bar.any()
 
 
-def test_the_hinge_gradient_matches_finite_differences():
+@pytest.mark.parametrize("anchor_weight", [1.0, 1000.0])
+def test_the_hinge_gradient_matches_finite_differences(anchor_weight):
     levels, a_scans = _levels_and_a_scans(seed=1)
-    hinge = LevelHinge(levels, a_scans * 1.3)  # bounds of another rendering: most pixels outside theirs
+    # Bounds of another rendering: most pixels outside theirs, the anchor too.
+    hinge = LevelHinge(levels, a_scans * 1.3, anchor_weight=anchor_weight)
     loss, a_bar = hinge(a_scans)
     assert loss > 0
-    step = 1e-6
+    step = 1e-5  # the loss is up to 1000 times the anchor's: the difference's rounding stays below 1e−5
     for index in np.ndindex(levels.shape):
         for direction, part in ((1.0, a_bar[index].real), (1j, a_bar[index].imag)):
             moved = a_scans.copy()
@@ -53,6 +55,18 @@ def test_the_hinge_gradient_matches_finite_differences():
             up = hinge(moved)[0]
             moved[index] -= 2 * step * direction
             assert (up - hinge(moved)[0]) / (2 * step) == pytest.approx(part, rel=1e-5, abs=1e-9)
+
+
+def test_the_anchor_weight_weighs_the_anchor_alone():
+    levels, a_scans = _levels_and_a_scans(seed=2)
+    plain, weighted = (LevelHinge(levels, a_scans * 1.3, anchor_weight=weight) for weight in (1.0, 1000.0))
+    (loss, a_bar), (weighted_loss, weighted_a_bar) = plain(a_scans), weighted(a_scans)
+    anchor = plain.lower == plain.upper
+    assert anchor.sum() == 1 and a_bar[anchor] != 0
+    np.testing.assert_allclose(weighted_a_bar[anchor], 1000.0 * a_bar[anchor])
+    np.testing.assert_array_equal(weighted_a_bar[~anchor], a_bar[~anchor])
+    anchor_loss = 0.5 * float(np.abs(a_bar[anchor][0] * np.abs(a_scans[anchor][0]) / a_scans[anchor][0]) ** 2)
+    assert weighted_loss - loss == pytest.approx(999.0 * anchor_loss)
 
 
 def test_the_unknowns_are_log_amplitude_and_carrier_phase():
