@@ -193,7 +193,7 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
 TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(100, 0.001, 0.02, terms="pixel"),
                                          Phase(40, 0.00025, 0.005, terms="pixel"),
                                          Phase(300, 0.0, 0.0, terms="hinge")),
-                                 restarts=(Phase(60, 0.0, 0.0, terms="hinge"),) * 9)
+                                 restarts=(Phase(60, 0.0, 0.0, terms="hinge"),) * 9, hinge_anchor_weight=100.0)
 #: torch's thread count in a fixed-schedule run unless given. The thread
 #: count changes no bit of the result (docs/reproducibility.md), only the
 #: speed; one thread is never slowed by other processes holding the cores
