@@ -1,7 +1,7 @@
 """The exact score along a hinge phase, from the tissue regime's pixel phases' end, every few iterations.
 
 For each target, ``octcl invert --regime tissue --iterations 0`` (stages 1–2)
-gives the start once (kept in ``--out``); the tissue schedule's pixel phases
+gives the start once (kept in ``--out``, as ``scripts/bench_tissue_refine.py`` keeps it); the tissue schedule's pixel phases
 (:data:`octcl.host.pipeline.invert.TISSUE_SCHEDULE`, its phases before the
 hinge) run from it once; then a hinge phase of ``--iterations`` runs from
 their end for each ``--anchor-weights`` value
@@ -20,27 +20,23 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 
-from octcl.config import DEFAULT_CONFIG
-from octcl.host.pipeline.invert import TISSUE_SCHEDULE, invert
-from octcl.host.pipeline.target import read_target, target_scan
-from octcl.host.stage1.ceiling import aimed_levels
-from octcl.host.stage1.levels import target_levels
+from octcl.host.pipeline.invert import TISSUE_SCHEDULE
 from octcl.host.stage3.refine import Phase, RefineSchedule, refine
 from octcl.host.stage3.schedule import HINGE
-from octcl.phantom import Phantom
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_tissue_refine import tissue_start  # noqa: E402
 
 
 def trace(target: Path, iterations: int, weights: list[float], score_every: int, out: Path) -> None:
-    levels = target_levels(target_scan(read_target(target)), DEFAULT_CONFIG)
-    aim = aimed_levels(levels)  # the tissue regime's, as octcl invert passes it to stage 3
-    start_path = out / f"{target.stem}_start.txt"
-    if not start_path.exists():
-        invert(target, start_path, regime="tissue", iterations=0, threads=2)
+    """The JSON rows of one target (module docstring)."""
+    levels, aim, start = tissue_start(target, target.stem, out)
     pixel_phases = tuple(phase for phase in TISSUE_SCHEDULE.phases if phase.terms != HINGE)
     pixel = dataclasses.replace(TISSUE_SCHEDULE, phases=pixel_phases, restarts=(), score_every=10**6)
-    warm = refine(Phantom.load(start_path), levels, pixel, threads=2, aim=aim).phantom
+    warm = refine(start, levels, pixel, threads=2, aim=aim).phantom
     for weight in weights:
         hinge = RefineSchedule(phases=(Phase(iterations, 0.0, 0.0, terms=HINGE),), restarts=(),
                                score_every=score_every, hinge_anchor_weight=weight)

@@ -85,15 +85,21 @@ def phases_schedule(spec: str) -> RefineSchedule:
     return dataclasses.replace(TISSUE_SCHEDULE, phases=tuple(phases))
 
 
-def bench(name: str, target: Path, runs: list[tuple[dict, RefineSchedule]], seconds: float, out: Path) -> None:
-    """Stage 3 from the target's tissue-regime start for ``seconds`` per run: ``runs`` (label, schedule) pairs, each
-    label a dict of what names the run in its JSON row."""
+def tissue_start(target: Path, name: str, out: Path) -> tuple[np.ndarray, np.ndarray, Phantom]:
+    """The target's levels, the tissue regime's aimed levels, and its phantom after stages 1–2
+    (``octcl invert --regime tissue --iterations 0``), written to ``out`` once per target and folder."""
     levels = target_levels(target_scan(read_target(target)), DEFAULT_CONFIG)
     aim = aimed_levels(levels)  # the tissue regime's, as octcl invert passes it to stage 3
     start_path = out / f"{name}_start.txt"
-    if not start_path.exists():  # stages 1–2 once per target and folder
+    if not start_path.exists():
         invert(target, start_path, regime="tissue", iterations=0, threads=2)
-    start = Phantom.load(start_path)
+    return levels, aim, Phantom.load(start_path)
+
+
+def bench(name: str, target: Path, runs: list[tuple[dict, RefineSchedule]], seconds: float, out: Path) -> None:
+    """Stage 3 from the target's tissue-regime start for ``seconds`` per run: ``runs`` (label, schedule) pairs, each
+    label a dict of what names the run in its JSON row."""
+    levels, aim, start = tissue_start(target, name, out)
     import_torch()  # before any schedule's clock
     for label, schedule in runs:
         began = time.perf_counter()

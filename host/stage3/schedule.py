@@ -209,9 +209,9 @@ class RefineSchedule:
         (:class:`octcl.host.stage3.hinge.LevelHinge`), every other pixel's
         being 1. A weight of 1000 took away the fall of the exact score
         that a hinge phase begins with on a skin and slowed orange.png
-        (docs/benchmarks.md, "Where the hinge loses time"); at 100 the
-        tissue regime's 30 s runs scored higher and its default runs lower
-        on skins: 1.
+        (docs/benchmarks.md, "Where the hinge loses time"). The default,
+        1, is the tissue regime's too: at 100 its 30 s runs scored higher
+        and its default runs on skins lower.
 
     These decisions follow the exact scores alone, never the clock, so
     fixed-schedule runs stay reproducible.
