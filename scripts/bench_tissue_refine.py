@@ -18,8 +18,9 @@ at the aimed one are printed, one JSON row per run:
   when given (one run for each length);
 - with ``--phases SPEC ...``, instead of named schedules, the tissue
   regime's schedule with its main phases replaced by each SPEC in turn:
-  phases ``TERMS:ITERATIONS:LR_Z_UM:LR_U`` joined by commas (its restarts
-  kept).
+  phases ``TERMS:ITERATIONS:LR_Z_UM:LR_U``, a hinge phase's with ``:GAMMA``
+  after them where its γ is not 0 (:attr:`octcl.host.stage3.schedule.Phase.relative_exponent`),
+  joined by commas (its restarts kept).
 
 torch is imported before the first schedule's clock starts, so that no
 schedule pays for it.
@@ -76,12 +77,13 @@ def schedule_named(name: str, pixel_rates: tuple[float, float], steps: int | Non
 
 
 def phases_schedule(spec: str) -> RefineSchedule:
-    """The tissue regime's schedule with its main phases from ``spec``: ``TERMS:ITERATIONS:LR_Z_UM:LR_U`` joined by
-    commas."""
+    """The tissue regime's schedule with its main phases from ``spec``: ``TERMS:ITERATIONS:LR_Z_UM:LR_U[:GAMMA]``
+    joined by commas."""
     phases = []
     for part in spec.split(","):
-        terms, iterations, lr_z_um, lr_u = part.split(":")
-        phases.append(Phase(int(iterations), float(lr_z_um), float(lr_u), terms=terms))
+        terms, iterations, lr_z_um, lr_u, *exponent = part.split(":")
+        phases.append(Phase(int(iterations), float(lr_z_um), float(lr_u), terms=terms,
+                            relative_exponent=float(exponent[0]) if exponent else 0.0))
     return dataclasses.replace(TISSUE_SCHEDULE, phases=tuple(phases))
 
 

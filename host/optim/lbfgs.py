@@ -24,11 +24,12 @@ import numpy as np
 
 #: c₁ of the Armijo condition.
 ARMIJO = 1e-4
-#: Halvings of the step at most before an iteration gives up.
+#: Steps an iteration tries at most before it gives up (the default of :func:`minimise`'s ``max_halvings``).
 MAX_HALVINGS = 30
 
 
-def minimise(loss_and_gradient, start: np.ndarray, iterations: int, memory: int = 20, callback=None):
+def minimise(loss_and_gradient, start: np.ndarray, iterations: int, memory: int = 20, callback=None,
+             max_halvings: int = MAX_HALVINGS):
     """Minimise ``loss_and_gradient(x) -> (float, gradient like x)`` from ``start`` by L-BFGS.
 
     Parameters
@@ -44,6 +45,9 @@ def minimise(loss_and_gradient, start: np.ndarray, iterations: int, memory: int 
     callback : callable, optional
         ``callback(x)`` after each iteration; raising StopIteration ends the
         minimisation there.
+    max_halvings : int
+        Steps an iteration tries at most (1, ½, … 2^(1 − max_halvings)); where
+        none decreases the loss enough, the minimisation ends there.
 
     Returns
     -------
@@ -69,7 +73,7 @@ def minimise(loss_and_gradient, start: np.ndarray, iterations: int, memory: int 
             if slope == 0:
                 break  # a stationary point
         step = 1.0 if pairs else min(1.0, 1.0 / np.sqrt(-slope))
-        for _ in range(MAX_HALVINGS):
+        for _ in range(max_halvings):
             trial = x + (step * direction).view(x.dtype).reshape(x.shape) if complex_valued \
                 else x + step * direction.reshape(x.shape)
             trial_loss, trial_gradient = loss_and_gradient(trial)

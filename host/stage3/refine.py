@@ -134,7 +134,7 @@ from ..threads import available_cores
 from ..optim import lbfgs
 from ..pipeline.target import target_scan
 from ..stage1.levels import target_levels
-from .hinge import HINGE_MEMORY, HingeUnknowns, LevelHinge
+from .hinge import HINGE_MAX_HALVINGS, HINGE_MEMORY, HingeUnknowns, LevelHinge
 from .schedule import FALL_LR_FACTOR, HINGE, MAX_ENERGY_PCT, SINGLE_TERM_PHASES, STOP_RULES, Phase, RefineSchedule
 
 if TYPE_CHECKING:
@@ -782,7 +782,7 @@ class _Descent:
             if phase.terms == HINGE:
                 length = next((end for end in range(step, len(self.steps)) if self.steps[end] is not phase),
                               len(self.steps)) - step
-                step = _HingeRun(self, step).run(length)
+                step = _HingeRun(self, step, phase.relative_exponent).run(length)
                 if self.refinement.stop_reason == "deadline":
                     self._score_end(step)
                     return False
@@ -897,8 +897,8 @@ class _HingeRun:
     render and an adjoint, more where its line search halves the step).
     """
 
-    def __init__(self, descent: _Descent, step: int):
-        self.descent, self.step = descent, step
+    def __init__(self, descent: _Descent, step: int, relative_exponent: float = 0.0):
+        self.descent, self.step, self.relative_exponent = descent, step, relative_exponent
         self.refinement = descent.refinement
         self.unknowns = HingeUnknowns(self.refinement.plan.config)
 
@@ -911,10 +911,12 @@ class _HingeRun:
         if not np.abs(start.a_scans).any():  # a dark rendering has no pixel to anchor the levels at: nothing to fit
             return self.end
         self.hinge = LevelHinge(self.refinement.plan.levels, start.a_scans,
-                                anchor_weight=self.descent.schedule.hinge_anchor_weight)
+                                anchor_weight=self.descent.schedule.hinge_anchor_weight,
+                                relative_exponent=self.relative_exponent)
         if self._fits():
             x, _ = lbfgs.minimise(self._loss_and_gradient, self.unknowns.pack(self.descent.z_um,
-                                  self.descent.log_energy), length, HINGE_MEMORY, self._after_iteration)
+                                  self.descent.log_energy), length, HINGE_MEMORY, self._after_iteration,
+                                  max_halvings=HINGE_MAX_HALVINGS)
             self._set_iterate(x)
         return self.step if self.refinement.stop_reason == "deadline" else self.end
 

@@ -106,12 +106,17 @@ class Phase:
     terms : str
         Which of the loss's terms it computes (:data:`PHASE_TERMS`, :meth:`LossWeights.for_terms`): ``all``,
         ``no_lpips``, ``pixel`` or ``level``; ``hinge``: L-BFGS on the levels' hinge (:data:`HINGE`), both rates 0.
+    relative_exponent : float
+        A hinge phase's γ in [0, 1]: its loss weighs each pixel's distance from its interval divided by
+        the interval's upper bound to the power γ (:class:`octcl.host.stage3.hinge.LevelHinge`): 0 in absolute
+        magnitude, 1 relative to the pixel's own. 0 for the other phases.
     """
 
     iterations: int
     lr_z_um: float
     lr_u: float
     terms: str = "all"
+    relative_exponent: float = 0.0
 
     def __post_init__(self):
         if self.iterations < 0:
@@ -122,6 +127,11 @@ class Phase:
         if self.terms == HINGE and (self.lr_z_um or self.lr_u):
             raise ValueError(f"a hinge phase takes L-BFGS steps, without learning rates: give 0 and 0, got "
                              f"{self.lr_z_um}, {self.lr_u}")
+        if not 0.0 <= self.relative_exponent <= 1.0:
+            raise ValueError(f"relative_exponent must be in [0, 1], got {self.relative_exponent!r}")
+        if self.relative_exponent and self.terms != HINGE:
+            raise ValueError(f"relative_exponent weighs a hinge phase's pixels; a {self.terms!r} phase has none, got "
+                             f"{self.relative_exponent}")
 
     @property
     def lpips(self) -> bool:

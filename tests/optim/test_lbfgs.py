@@ -48,3 +48,22 @@ def test_rosenbrock_and_the_callback_that_stops_it():
 def test_a_stationary_start_stays():
     x, taken = minimise(lambda x: (float(x @ x), 2 * x), np.zeros(3), 10)
     assert taken == 0 and not x.any()
+
+
+def test_an_iteration_tries_at_most_max_halvings_steps():
+    """A loss whose gradient points uphill (its sign flipped): no step of −g decreases it, so the first iteration
+    tries 1, ½, … (``max_halvings`` steps, each one evaluation) and the minimisation ends where it began."""
+    evaluations = []
+
+    def misleading(x):
+        evaluations.append(x.copy())
+        return float(x @ x), -2 * x
+
+    start = np.array([1.0, -2.0])
+    for max_halvings in (30, 8):
+        evaluations.clear()
+        x, taken = minimise(misleading, start, 10, max_halvings=max_halvings)
+        assert taken == 0 and np.array_equal(x, start)
+        assert len(evaluations) == 1 + max_halvings  # the start, then each step tried
+        steps = [np.linalg.norm(trial - start) for trial in evaluations[1:]]
+        np.testing.assert_allclose(np.array(steps[1:]) / steps[:-1], 0.5, rtol=1e-5)  # steps to 2^−29 of 2

@@ -40,21 +40,23 @@ def test_the_hinge_is_anchored_at_the_start_and_zero_inside_every_interval():
     assert loss == 0 and not a_bar.any()
 
 
-@pytest.mark.parametrize("anchor_weight", [1.0, 1000.0])
-def test_the_hinge_gradient_matches_finite_differences(anchor_weight):
+@pytest.mark.parametrize("anchor_weight, relative_exponent", [(1.0, 0.0), (1000.0, 0.0), (1.0, 0.5), (1.0, 1.0)])
+def test_the_hinge_gradient_matches_finite_differences(anchor_weight, relative_exponent):
     levels, a_scans = _levels_and_a_scans(seed=1)
     # Bounds of another rendering: most pixels outside theirs, the anchor too.
-    hinge = LevelHinge(levels, a_scans * 1.3, anchor_weight=anchor_weight)
+    hinge = LevelHinge(levels, a_scans * 1.3, anchor_weight=anchor_weight, relative_exponent=relative_exponent)
     loss, a_bar = hinge(a_scans)
     assert loss > 0
-    step = 1e-5  # the loss is up to 1000 times the anchor's: the difference's rounding stays below 1e−5
+    # The loss is up to 1000 times the anchor's: at 1e−5 the difference's rounding stays below 1e−5. At γ = 1 it
+    # is 2e5 (weights up to 1.1e5, a dark pixel 51 dB down): the difference rounds to 3e−5 at 1e−5, 1.3e−5 at 1e−4.
+    step = 1e-4 if relative_exponent == 1.0 else 1e-5
     for index in np.ndindex(levels.shape):
         for direction, part in ((1.0, a_bar[index].real), (1j, a_bar[index].imag)):
             moved = a_scans.copy()
             moved[index] += step * direction
             up = hinge(moved)[0]
             moved[index] -= 2 * step * direction
-            assert (up - hinge(moved)[0]) / (2 * step) == pytest.approx(part, rel=1e-5, abs=1e-9)
+            assert (up - hinge(moved)[0]) / (2 * step) == pytest.approx(part, rel=2e-5, abs=1e-9)
 
 
 def test_the_anchor_weight_weighs_the_anchor_alone():
@@ -67,6 +69,56 @@ def test_the_anchor_weight_weighs_the_anchor_alone():
     np.testing.assert_array_equal(weighted_a_bar[~anchor], a_bar[~anchor])
     anchor_residual = float(np.abs(a_scans[anchor][0]) - plain.upper[anchor][0])  # its interval is one value
     assert weighted_loss - loss == pytest.approx(999.0 * 0.5 * anchor_residual**2)
+
+
+def test_the_relative_exponent_weighs_each_pixel_by_its_upper_bound():
+    """w_p = (u_p/u_anchor)^(−2γ): at γ = 1 each pixel's loss is its squared distance relative to its upper
+    bound; the anchor's weight stays 1, and a rendering inside every interval still costs nothing."""
+    levels, a_scans = _levels_and_a_scans(seed=4)
+    levels.flat[1] = 0  # level 0: its upper bound is the display's floor, its lower 0
+    plain, relative = (LevelHinge(levels, a_scans * 1.3, relative_exponent=gamma) for gamma in (0.0, 1.0))
+    anchor = plain.lower == plain.upper
+    scale = plain.upper[anchor][0]
+    np.testing.assert_allclose(relative.weight, (plain.upper / scale) ** -2.0)
+    assert relative.weight[anchor][0] == 1.0 and relative.weight.flat[1] > 1e4  # the floor is 51 dB down
+    magnitude = np.abs(a_scans)
+    distance = magnitude - np.clip(magnitude, plain.lower, plain.upper)
+    assert relative(a_scans)[0] == pytest.approx(0.5 * float(np.sum((distance * scale / plain.upper) ** 2)))
+    inside = 0.5 * (plain.lower + plain.upper) * np.exp(1j * np.angle(a_scans))
+    inside[anchor] = scale
+    assert relative(inside)[0] == 0
+    with pytest.raises(ValueError, match=r"relative_exponent must be in \[0, 1\]"):
+        LevelHinge(levels, a_scans, relative_exponent=1.5)
+
+
+def test_each_hinge_phase_fits_with_its_own_exponent(shadowed_start, monkeypatch):
+    """Two hinge phases in a row with different γ are two L-BFGS fits, each weighing the pixels by its own γ;
+    the restarts' by theirs."""
+    from octcl.host.stage3 import refine as refine_module
+
+    exponents = []
+
+    class Recorded(LevelHinge):
+        def __init__(self, *args, relative_exponent=0.0, **kwargs):
+            exponents.append(relative_exponent)
+            super().__init__(*args, relative_exponent=relative_exponent, **kwargs)
+
+    monkeypatch.setattr(refine_module, "LevelHinge", Recorded)
+    start, aim = shadowed_start
+    schedule = RefineSchedule(phases=(Phase(2, 0.0, 0.0, terms=HINGE), Phase(2, 0.0, 0.0, terms=HINGE,
+                                                                             relative_exponent=0.5)),
+                              restarts=(Phase(2, 0.0, 0.0, terms=HINGE, relative_exponent=0.25),),
+                              score_every=100, min_gain=None)
+    result = refine(start, aim, schedule, aim=aim, threads=1)
+    assert exponents == [0.0, 0.5, 0.25] and result.iterations == 6
+
+
+def test_only_a_hinge_phase_has_a_relative_exponent():
+    Phase(5, 0.0, 0.0, terms=HINGE, relative_exponent=0.5)
+    with pytest.raises(ValueError, match="a 'pixel' phase has none"):
+        Phase(5, 0.001, 0.02, terms="pixel", relative_exponent=0.5)
+    with pytest.raises(ValueError, match=r"must be in \[0, 1\]"):
+        Phase(5, 0.0, 0.0, terms=HINGE, relative_exponent=-0.1)
 
 
 def test_the_unknowns_are_log_amplitude_and_carrier_phase():
