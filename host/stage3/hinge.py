@@ -123,10 +123,10 @@ class HingeUnknowns:
 
 
 #: Steps a hinge iteration tries at most (1 to 1/128 of L-BFGS's), where stage 1's fit tries 30: each is a render and
-#: an adjoint, and an iteration that needs smaller steps gains too little to pay for them. A whole default run
-#: of skin 12 (γ = ½ from the hinge's second half) took 3–13 renders an iteration over the main hinge's last
-#: iterations and about 13 (2 s) over each of its first restart's sixty, 120 s without moving the score; with 8, see
-#: docs/benchmarks.md ("The hinge weighs dark pixels more").
+#: an adjoint, and an iteration that needs smaller steps gains too little to pay for them. A whole default run of
+#: skin 12 (its hinge 150 iterations at γ = 0, then 150 at ½) took 3–13 renders an iteration over the main hinge's
+#: last iterations and about 13 (2 s) over each of its first restart's sixty, 120 s without moving the score; with
+#: 8, see docs/benchmarks.md ("The hinge weighs dark pixels more").
 HINGE_MAX_HALVINGS = 8
 #: L-BFGS pairs kept in a hinge phase (stage 1's hinge fit keeps 10, :data:`octcl.host.stage1.hinge.LEVEL_FIT_MEMORY`):
 #: 10 pairs of 2·295,000 float64 unknowns are 94 MB.
