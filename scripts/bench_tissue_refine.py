@@ -82,6 +82,8 @@ def phases_schedule(spec: str) -> RefineSchedule:
     phases = []
     for part in spec.split(","):
         terms, iterations, lr_z_um, lr_u, *exponent = part.split(":")
+        if len(exponent) > 1:
+            raise ValueError(f"phase {part!r}: TERMS:ITERATIONS:LR_Z_UM:LR_U[:GAMMA], got {len(exponent) + 4} fields")
         phases.append(Phase(int(iterations), float(lr_z_um), float(lr_u), terms=terms,
                             relative_exponent=float(exponent[0]) if exponent else 0.0))
     return dataclasses.replace(TISSUE_SCHEDULE, phases=tuple(phases))

@@ -202,7 +202,7 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
 #: come back. The whole 300 at 0 first, with only the restarts at ½, took orange.png to 0.999892 and skin 14 to
 #: 0.999886 (0.8.9: 0.999881), skin 11 down to 0.999934. Both, as here: skins 11–15 at a mean of 0.9999638 and
 #: 99.11 % (four of five at 99.3–99.6 %, skin 14 97.8 %), orange.png 0.999896 (92.6 %), 76–129 s. A 30 s run ends
-#: in the γ = 0 part (its stage 3 took 141–158 steps of the 440 before the γ = ½ phase).
+#: in the γ = 0 part (its stage 3 took 141–161 steps of the 440 before the γ = ½ phase).
 TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(100, 0.001, 0.02, terms="pixel"),
                                          Phase(40, 0.00025, 0.005, terms="pixel"),
                                          Phase(300, 0.0, 0.0, terms="hinge"),

@@ -63,6 +63,12 @@ from ...config import DEFAULT_CONFIG, ScannerConfig
 from ..stage1.levels import INTERVAL_MARGIN, anchored_bounds
 
 
+def check_relative_exponent(relative_exponent: float) -> None:
+    """Raise ValueError unless γ is in [0, 1] (module docstring)."""
+    if not 0.0 <= relative_exponent <= 1.0:
+        raise ValueError(f"relative_exponent must be in [0, 1], got {relative_exponent!r}")
+
+
 class LevelHinge:
     """½·Σ_p dist(|A_p|, [l_p, u_p])² with the bounds anchored at a start rendering (module docstring).
 
@@ -83,8 +89,7 @@ class LevelHinge:
 
     def __init__(self, aim: np.ndarray, start_a_scans: np.ndarray, margin: float = INTERVAL_MARGIN,
                  anchor_weight: float = 1.0, relative_exponent: float = 0.0):
-        if not 0.0 <= relative_exponent <= 1.0:
-            raise ValueError(f"relative_exponent must be in [0, 1], got {relative_exponent!r}")
+        check_relative_exponent(relative_exponent)
         magnitude = np.abs(start_a_scans)
         scale = float(magnitude.max())
         if not scale > 0:
@@ -132,4 +137,4 @@ HINGE_MAX_HALVINGS = 8
 #: 10 pairs of 2·295,000 float64 unknowns are 94 MB.
 HINGE_MEMORY = 10
 
-__all__ = ["HINGE_MAX_HALVINGS", "HINGE_MEMORY", "HingeUnknowns", "LevelHinge"]
+__all__ = ["HINGE_MAX_HALVINGS", "HINGE_MEMORY", "HingeUnknowns", "LevelHinge", "check_relative_exponent"]

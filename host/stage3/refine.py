@@ -897,7 +897,7 @@ class _HingeRun:
     render and an adjoint, more where its line search halves the step).
     """
 
-    def __init__(self, descent: _Descent, step: int, relative_exponent: float = 0.0):
+    def __init__(self, descent: _Descent, step: int, relative_exponent: float):
         self.descent, self.step, self.relative_exponent = descent, step, relative_exponent
         self.refinement = descent.refinement
         self.unknowns = HingeUnknowns(self.refinement.plan.config)

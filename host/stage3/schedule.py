@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .hinge import check_relative_exponent
+
 #: Largest energy of the task contract, in % (u ≤ ln 100).
 MAX_ENERGY_PCT = 100.0
 #: The default :attr:`RefineSchedule.min_gain`: the smallest gain of exact score that counts as progress.
@@ -127,8 +129,7 @@ class Phase:
         if self.terms == HINGE and (self.lr_z_um or self.lr_u):
             raise ValueError(f"a hinge phase takes L-BFGS steps, without learning rates: give 0 and 0, got "
                              f"{self.lr_z_um}, {self.lr_u}")
-        if not 0.0 <= self.relative_exponent <= 1.0:
-            raise ValueError(f"relative_exponent must be in [0, 1], got {self.relative_exponent!r}")
+        check_relative_exponent(self.relative_exponent)
         if self.relative_exponent and self.terms != HINGE:
             raise ValueError(f"relative_exponent weighs a hinge phase's pixels; a {self.terms!r} phase has none, got "
                              f"{self.relative_exponent}")
