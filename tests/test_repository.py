@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -17,10 +18,23 @@ import pytest
 CHECKOUT = Path(__file__).absolute().parents[1]
 
 
+def shared_folders() -> set[Path]:
+    """Folders every machine has, as given and resolved: a root, the temporary folder, the home folder.
+
+    A checkout cloned straight into one of them (``/tmp/octcl``) has it as its
+    parent, yet a recorded command that writes under ``/tmp`` names nothing
+    of this machine.
+    """
+    folders = {Path(tempfile.gettempdir()), Path("/tmp"), Path.home()}
+    folders |= {folder.resolve() for folder in folders}
+    return folders | {Path(folder.anchor) for folder in folders}
+
+
 def machine_paths(checkout: Path) -> set[str]:
-    """The checkout's absolute path and its parent folder's, as given and resolved (not ``/``)."""
+    """The checkout's absolute path and its parent folder's, as given and resolved, less shared folders."""
     paths = {checkout, checkout.parent, checkout.resolve(), checkout.resolve().parent}
-    return {path.as_posix() for path in paths if path != Path(path.anchor)}
+    shared = shared_folders() | {Path(path.anchor) for path in paths}
+    return {path.as_posix() for path in paths if path not in shared}
 
 
 def mentions(files: list[Path], paths: set[str], root: Path) -> list[str]:
@@ -73,3 +87,11 @@ def test_mentions_finds_whole_paths_only(tmp_path):
     assert mentions(files, machine_paths(checkout), checkout) == [
         f"a.md:2: {parent}", f"b.py:1: {checkout.as_posix()}"]
     assert "/" not in machine_paths(Path("/repo"))
+
+
+def test_a_checkout_cloned_into_the_temporary_folder_names_only_itself():
+    temporary = Path(tempfile.gettempdir())
+    paths = machine_paths(temporary / "octcl")
+    assert (temporary / "octcl").as_posix() in paths
+    assert temporary.as_posix() not in paths and "/tmp" not in paths
+    assert (temporary / "x").as_posix() in machine_paths(temporary / "x" / "octcl")
