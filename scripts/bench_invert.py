@@ -375,21 +375,26 @@ def write_summary(out: Path) -> str:
     return text
 
 
-def replay_restart_rule(trace: list[dict], total_s: float, min_gain: float) -> tuple[float, float]:
-    """(best score, seconds) where a run would have stopped after its first restart gaining < ``min_gain``.
+def replay_restart_rule(trace: list[dict], total_s: float, min_gain: float,
+                        patience: int = 1) -> tuple[float, float]:
+    """(best score, seconds) where a run would have stopped after the first ``patience`` restarts in a row that
+    together gained < ``min_gain`` (:attr:`~octcl.host.stage3.schedule.RefineSchedule.restart_patience`).
 
     ``trace`` is a whole-schedule run's (invert's report): the rule takes the
-    same steps up to the end of that restart, so its score there is the run's
-    best so far and its time the trace's time there plus what the run spent
-    after its last trace entry (the final writes). Without such a restart:
-    the run's own best score and time.
+    same steps up to the end of the last of those restarts, so its score there
+    is the run's best so far and its time the trace's time there plus what the
+    run spent after its last trace entry (the final writes). Without such
+    restarts: the run's own best score and time.
     """
-    best, parent, stage, end = -np.inf, None, None, None
+    best, stage, end, parents = -np.inf, None, None, []
     for entry in trace:
         if entry["stage"] != stage:
-            if stage and stage.startswith("restart") and best - parent < min_gain:
+            if (stage and stage.startswith("restart") and len(parents) >= patience
+                    and best - parents[-patience] < min_gain):
                 break
-            stage, parent = entry["stage"], best
+            stage = entry["stage"]
+            if stage.startswith("restart"):
+                parents.append(best)
         if entry.get("score") is not None:
             best = max(best, entry["score"])
         end = entry["time_s"]

@@ -707,18 +707,19 @@ class _Run:
     def restarts(self) -> None:
         """The restarts in order, each from the best phantom so far with fresh moments.
 
-        With adaptive stopping the last is repeated while each gains, until
-        the iterations the main run left are spent; the first that gains
-        less than ``min_gain`` ends the refinement.
+        With adaptive stopping the last is repeated while they gain, until
+        the iterations the main run left are spent; the refinement ends once
+        the last ``restart_patience`` restarts together gained less than
+        ``min_gain`` over the best score before the first of them.
         """
-        schedule, count = self.plan.schedule, 0
-        while self._restart_due(count):
-            restart = schedule.restarts[min(count, len(schedule.restarts) - 1)]
-            count += 1
-            parent = self.best.score
-            _Descent(self, f"restart {count}", (restart,), self.best.z_um.copy(), self.best.log_energy.copy(),
-                     {restart.iterations // 2}).run()
-            if schedule.min_gain is not None and not self.stop_reason and self.best.score - parent < schedule.min_gain:
+        schedule, parents = self.plan.schedule, []
+        while self._restart_due(len(parents)):
+            restart = schedule.restarts[min(len(parents), len(schedule.restarts) - 1)]
+            parents.append(self.best.score)
+            _Descent(self, f"restart {len(parents)}", (restart,), self.best.z_um.copy(),
+                     self.best.log_energy.copy(), {restart.iterations // 2}).run()
+            if (schedule.min_gain is not None and not self.stop_reason and len(parents) >= schedule.restart_patience
+                    and self.best.score - parents[-schedule.restart_patience] < schedule.min_gain):
                 self.stop_reason = "converged"
 
     def _restart_due(self, done: int) -> bool:

@@ -184,6 +184,12 @@ class RefineSchedule:
         while each gains, the last restart is repeated until the schedule's
         iterations are spent. None: every restart runs, once
         (:meth:`fixed_length`, the schedule before adaptive stopping).
+    restart_patience : int
+        With ``min_gain``, how many restarts in a row are judged together:
+        the refinement ends once the last ``restart_patience`` restarts
+        together gained less than ``min_gain`` over the best score before the
+        first of them. 1 (the default): the first restart that gains less
+        ends it.
     patience : int or None
         With ``min_gain``, the main run also ends (skipping the rest of its
         phases; the restarts begin from the best phantom) once the best
@@ -240,6 +246,7 @@ class RefineSchedule:
     max_iterations: int | None = None
     patience: int | None = None
     min_gain: float | None = MIN_GAIN
+    restart_patience: int = 1
     lpips_every: int = 1
     max_falls: int = 2
     fall_tolerance: float = 1e-3
@@ -258,6 +265,8 @@ class RefineSchedule:
             raise ValueError(f"patience must be a whole number ≥ 1 or None, got {self.patience!r}")
         if self.min_gain is not None and not self.min_gain >= 0:
             raise ValueError(f"min_gain must be ≥ 0 or None, got {self.min_gain}")
+        if not (isinstance(self.restart_patience, int) and self.restart_patience >= 1):
+            raise ValueError(f"restart_patience must be a whole number ≥ 1, got {self.restart_patience!r}")
         if self.patience is not None and self.min_gain is None:
             raise ValueError("patience needs a min_gain")
         if not (isinstance(self.lpips_every, int) and self.lpips_every >= 1):
@@ -276,7 +285,8 @@ class RefineSchedule:
     def with_stop_rule(self, rule: str) -> "RefineSchedule":
         """This schedule with one of the stopping rules of :data:`STOP_RULES` (``octcl invert --stop-rule``).
 
-        ``restarts``: ``min_gain`` 1e−5, no ``patience`` (the default);
+        ``restarts``: the schedule's own ``min_gain`` and ``restart_patience``
+        (:data:`MIN_GAIN` where it has none), no ``patience`` (the default);
         ``stall``: the same and ``patience`` 2 (about half the time on the
         development set, not yet shown to keep every scan's score: module
         docstring); ``none``: :meth:`fixed_length`.
@@ -285,7 +295,8 @@ class RefineSchedule:
             raise ValueError(f"stop rule must be one of {', '.join(STOP_RULES)}, got {rule!r}")
         if rule == "none":
             return self.fixed_length()
-        return dataclasses.replace(self, min_gain=MIN_GAIN, patience=2 if rule == "stall" else None)
+        return dataclasses.replace(self, min_gain=MIN_GAIN if self.min_gain is None else self.min_gain,
+                                   patience=2 if rule == "stall" else None)
 
     @classmethod
     def published(cls) -> "RefineSchedule":

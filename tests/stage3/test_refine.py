@@ -348,6 +348,22 @@ def test_a_stalled_run_stops(stage2_phantom, layers_target):
     assert repeated.components["mean"] > repeated.initial_components["mean"]
 
 
+def test_restarts_are_judged_together_over_restart_patience(stage2_phantom, layers_target):
+    """``restart_patience`` 2: a restart that gains nothing is followed by one more, and the refinement ends once
+    the two together gained less than ``min_gain``; restarts that gain are judged over the last two."""
+    still = Phase(6, 0.0, 0.0, terms="no_lpips")
+    schedule = RefineSchedule(phases=(still,), restarts=(Phase(4, 0.0, 0.0, terms="no_lpips"), still),
+                              score_every=2, patience=1, restart_patience=2)
+    result = refine(stage2_phantom, layers_target, schedule, threads=2)
+    assert result.stop_reason == "converged" and result.iterations == 2 + 2 + 3
+    scored = [(entry["stage"], entry["iteration"]) for entry in result.trace if entry["score"] is not None]
+    assert scored == [("initial", 0), ("refine", 2), ("restart 1", 2), ("restart 2", 3)]
+    gaining = RefineSchedule(phases=(still,), restarts=(Phase(2, 0.01, 0.02, terms="no_lpips"),), score_every=2,
+                             patience=1, min_gain=1e-12, restart_patience=2)
+    repeated = refine(stage2_phantom, layers_target, gaining, threads=2)
+    assert repeated.iterations == gaining.total_iterations and repeated.stop_reason == "schedule"
+
+
 def test_a_fallen_main_run_goes_back_to_its_best(stage2_phantom, layers_target, monkeypatch):
     """Steps far too long make the checkpoints fall below the start: back to the best, at half the rates.
 
@@ -512,6 +528,11 @@ def test_schedule_checks():
         Phase(1, 0.01, 0.01, terms="lpips")
     with pytest.raises(ValueError, match="terms"):
         LossWeights().for_terms("struct")
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError, match="restart_patience"):
+            RefineSchedule(restart_patience=bad)
+    own = RefineSchedule(min_gain=3e-6, restart_patience=2)
+    assert own.with_stop_rule("restarts") == own and own.fixed_length().with_stop_rule("restarts").min_gain == 1e-5
     rules = {rule: RefineSchedule().with_stop_rule(rule) for rule in ("restarts", "stall", "none")}
     assert rules["restarts"] == RefineSchedule() and rules["none"] == RefineSchedule().fixed_length()
     assert (rules["stall"].patience, rules["stall"].min_gain) == (2, RefineSchedule().min_gain)
