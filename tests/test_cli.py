@@ -3,6 +3,8 @@
 import errno
 import json
 import os
+import shlex
+import shutil
 import struct
 import subprocess
 import sys
@@ -535,6 +537,22 @@ def test_invert_refuses_a_bad_field_schedule_before_any_work(tmp_path, capsys, o
     status, _, err = run(capsys, "invert", official_data / "Scan_Exp2_Layers_A.png", "-o", output, *options)
     assert status == 2 and message in err and err.count("\n") == 1
     assert not output.exists()
+
+
+@pytest.mark.clock
+@pytest.mark.skipif(shutil.which("sh") is None, reason="needs a POSIX shell")
+def test_a_budget_counts_from_the_import_when_a_shell_ran_first_in_the_same_process():
+    """``sh -c "sleep 3; exec python ..."`` keeps the shell's process, started 3 s before Python: its age says
+    so, and the budget counts from at most MAX_START_TO_IMPORT_S before octcl.cli's import instead."""
+    from octcl.cli import MAX_START_TO_IMPORT_S
+
+    code = ("import time; from octcl.cli import process_age_s, process_started; "
+            "print(process_age_s(), time.monotonic() - process_started())")
+    command = f"sleep 3; exec {shlex.quote(sys.executable)} -c {shlex.quote(code)}"
+    done = subprocess.run(["sh", "-c", command], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    age, counted = (float(value) for value in done.stdout.split())
+    assert age >= 3.0 and MAX_START_TO_IMPORT_S <= counted < MAX_START_TO_IMPORT_S + 1.0
 
 
 @pytest.mark.clock
