@@ -763,6 +763,7 @@ class _Descent:
         self.best_after = [refinement.best.score]  # the best score at the start and after each checkpoint
         self.lpips_kept_at = None  # the step whose LPIPS gradient the loss keeps (lpips_every > 1)
         self.stalled = False
+        self.phase_ended = False  # the phase's patience ran out at the last checkpoint (Phase.patience)
         self.scored_after = None  # the step count whose iterate was scored last
 
     def _fresh_adam(self) -> Adam:
@@ -798,6 +799,12 @@ class _Descent:
                 return False
             if not self._take_step(step, phase, lpips_mode):
                 return self.stalled
+            if self.phase_ended:  # scored here and stalled: the next phase from this iterate, without a step
+                self.phase_ended = False
+                step = next((end for end in range(step, len(self.steps)) if self.steps[end] is not phase),
+                            len(self.steps))
+                self.scored_after = step
+                continue
             step += 1
         self.refinement.check_ceiling(self.stage)
         self._score_end(len(self.steps))
@@ -818,7 +825,8 @@ class _Descent:
         refiner = self.refinement.refiner
         # Timed under the mode the deadline check read, even where a fall changes it.
         operation = _loss_adjoint_operation(lpips_mode)
-        scored = step in self.checkpoints and step > 0 and self.refinement.clock.fits("score")
+        scored = (step in self.checkpoints and step > 0 and step != self.scored_after
+                  and self.refinement.clock.fits("score"))
         if scored:
             refiner.round_as_saved(self.z_um, self.log_energy)
         rendering = refiner.render(self.z_um, self.log_energy, for_adjoint=True)
@@ -828,6 +836,10 @@ class _Descent:
             if self.refinement.stop_reason or self.stalled:
                 self.refinement.report(self.stage)
                 return False
+            if self._phase_stalled(phase):
+                self.phase_ended = True
+                self.refinement.report(self.stage)
+                return True
             if self._has_fallen(components["mean"]):
                 lpips_mode = self._go_back(step, lpips_mode)
                 rendering = refiner.render(self.z_um, self.log_energy, for_adjoint=True)
@@ -845,6 +857,12 @@ class _Descent:
         self.stalled = bool(patience and len(self.best_after) > patience
                             and self.best_after[-1] - self.best_after[-1 - patience] < self.schedule.min_gain)
         return components
+
+    def _phase_stalled(self, phase: Phase) -> bool:
+        """Whether ``phase`` ends at this checkpoint: its patience's checkpoints gained less than ``min_gain``."""
+        patience, min_gain = phase.patience, self.schedule.min_gain
+        return bool(patience and min_gain is not None and len(self.best_after) > patience
+                    and self.best_after[-1] - self.best_after[-1 - patience] < min_gain)
 
     def _has_fallen(self, score: float) -> bool:
         """A guarded run's checkpoint below its start or too far below the best (:attr:`RefineSchedule.max_falls`)."""

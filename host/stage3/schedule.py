@@ -112,6 +112,11 @@ class Phase:
         A hinge phase's γ in [0, 1]: its loss weighs each pixel's distance from its interval divided by
         the interval's upper bound to the power γ (:class:`octcl.host.stage3.hinge.LevelHinge`): 0 in absolute
         magnitude, 1 relative to the pixel's own. 0 for the other phases.
+    patience : int or None
+        An Adam phase of the main run ends early, and the main run goes on with its next phase from where it
+        is, at a checkpoint where the best exact score has gained less than the schedule's ``min_gain`` over
+        the last ``patience`` checkpoints (of the main run, this phase's or the ones before). None: the phase
+        runs its length. Off without adaptive stopping (``min_gain`` None); a hinge phase has its own end.
     """
 
     iterations: int
@@ -119,6 +124,7 @@ class Phase:
     lr_u: float
     terms: str = "all"
     relative_exponent: float = 0.0
+    patience: int | None = None
 
     def __post_init__(self):
         if self.iterations < 0:
@@ -130,6 +136,10 @@ class Phase:
             raise ValueError(f"a hinge phase takes L-BFGS steps, without learning rates: give 0 and 0, got "
                              f"{self.lr_z_um}, {self.lr_u}")
         check_relative_exponent(self.relative_exponent)
+        if self.patience is not None and not (isinstance(self.patience, int) and self.patience >= 1):
+            raise ValueError(f"a phase's patience must be a whole number ≥ 1 or None, got {self.patience!r}")
+        if self.patience is not None and self.terms == HINGE:
+            raise ValueError("a hinge phase ends where L-BFGS does: it takes no patience")
         if self.relative_exponent and self.terms != HINGE:
             raise ValueError(f"relative_exponent weighs a hinge phase's pixels; a {self.terms!r} phase has none, got "
                              f"{self.relative_exponent}")

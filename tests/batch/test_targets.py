@@ -65,7 +65,8 @@ def test_settings_record_holds_the_options_as_json():
     record = settings_record(30, 1, {"schedule": schedule})
     assert record["time_budget_s"] == 30.0 and record["seed"] == 1 and record["octcl_version"]
     assert record["options"]["schedule"]["phases"] == [{"iterations": 4, "lr_z_um": 0.01, "lr_u": 0.02,
-                                                        "terms": "all", "relative_exponent": 0.0}]
+                                                        "terms": "all", "relative_exponent": 0.0,
+                                                        "patience": None}]
     assert json.loads(json.dumps(record)) == record
     with pytest.raises(TypeError, match="invert option of type .* has no JSON form"):
         settings_record(30, 1, {"progress": print})

@@ -364,6 +364,20 @@ def test_restarts_are_judged_together_over_restart_patience(stage2_phantom, laye
     assert repeated.iterations == gaining.total_iterations and repeated.stop_reason == "schedule"
 
 
+def test_a_phase_out_of_patience_hands_over_to_the_next(stage2_phantom, layers_target):
+    """A phase of zero rates with ``patience`` 1 never gains: it ends at its first checkpoint without a step
+    there, and the next phase goes on from that iterate and step count, its checkpoints unchanged and that
+    iterate not scored twice. Without adaptive stopping the phase runs its length."""
+    schedule = RefineSchedule(phases=(Phase(6, 0.0, 0.0, terms="pixel", patience=1),
+                                      Phase(4, 0.001, 0.02, terms="pixel")), restarts=(), score_every=2)
+    result = refine(stage2_phantom, layers_target, schedule, threads=2)
+    assert result.iterations == 2 + 4 and result.stop_reason == "schedule"
+    scored = [entry["iteration"] for entry in result.trace if entry["stage"] == "refine" and entry["score"] is not None]
+    assert scored == [2, 8, 10]
+    whole = refine(stage2_phantom, layers_target, schedule.fixed_length(), threads=2)
+    assert whole.iterations == 6 + 4
+
+
 def test_a_fallen_main_run_goes_back_to_its_best(stage2_phantom, layers_target, monkeypatch):
     """Steps far too long make the checkpoints fall below the start: back to the best, at half the rates.
 
@@ -528,6 +542,11 @@ def test_schedule_checks():
         Phase(1, 0.01, 0.01, terms="lpips")
     with pytest.raises(ValueError, match="terms"):
         LossWeights().for_terms("struct")
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError, match="patience"):
+            Phase(1, 0.01, 0.01, patience=bad)
+    with pytest.raises(ValueError, match="hinge"):
+        Phase(1, 0.0, 0.0, terms="hinge", patience=2)
     for bad in (0, 1.5):
         with pytest.raises(ValueError, match="restart_patience"):
             RefineSchedule(restart_patience=bad)
