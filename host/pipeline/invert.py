@@ -214,8 +214,10 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
 TISSUE_MIN_GAIN = 5e-6
 #: The pixel phases end once two checkpoints (40 steps) gained less than :data:`TISSUE_MIN_GAIN`, and the hinge
 #: begins: on orange.png the pixel phase's best came at step 40 and its exact score then fell (0.99920 to 0.99880
-#: at step 120) while the hinge climbs at once, and a 30 s run on two slow cores ended at step 133, before the
-#: hinge (0.99920). A skin's pixel phase gains at every checkpoint and runs its length.
+#: at step 120) while the hinge climbs at once, and 30 s runs on two slow cores ended at steps 133–155, the orange
+#: family at 0.99920–0.99965 by whether the hinge had begun; with the patience 0.99962–0.99967. A skin's pixel
+#: phase gains ≥ 2.7e−5 over every two checkpoints and runs its length (docs/benchmarks.md, "The tissue pixel
+#: phase ends where it stops gaining").
 TISSUE_PIXEL_PATIENCE = 2
 TISSUE_RESTART_PATIENCE = 2
 TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(100, 0.001, 0.02, terms="pixel", patience=TISSUE_PIXEL_PATIENCE),
