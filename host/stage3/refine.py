@@ -836,12 +836,14 @@ class _Descent:
             if self.refinement.stop_reason or self.stalled:
                 self.refinement.report(self.stage)
                 return False
-            if self._phase_stalled(phase):
+            fallen = self._has_fallen(components["mean"])
+            if fallen:
+                lpips_mode = self._go_back(step, lpips_mode)
+            if self._phase_stalled(phase):  # the next phase begins here (from the best, where this one fell)
                 self.phase_ended = True
                 self.refinement.report(self.stage)
                 return True
-            if self._has_fallen(components["mean"]):
-                lpips_mode = self._go_back(step, lpips_mode)
+            if fallen:
                 rendering = refiner.render(self.z_um, self.log_energy, for_adjoint=True)
         self._adam_step(rendering, phase, lpips_mode, operation, entry)
         return True

@@ -378,6 +378,28 @@ def test_a_phase_out_of_patience_hands_over_to_the_next(stage2_phantom, layers_t
     assert whole.iterations == 6 + 4
 
 
+def test_a_phase_that_fell_and_ran_out_of_patience_hands_over_its_best(stage2_phantom, layers_target, monkeypatch):
+    """Steps far too long fall at the first checkpoint, which also ends the phase: the next phase begins from
+    the best phantom (the input) with fresh moments, at the halved rates of a fall."""
+    from octcl.host.stage3.refine import FALL_LR_FACTOR, _Refiner
+
+    steps = []
+    original = _Refiner.step
+
+    def spy(self, adam, params, grads, lrs):
+        steps.append((params[0].copy(), lrs, adam.steps))
+        return original(self, adam, params, grads, lrs)
+
+    monkeypatch.setattr(_Refiner, "step", spy)
+    schedule = RefineSchedule(phases=(Phase(6, 2.0, 2.0, terms="no_lpips", patience=1),
+                                      Phase(2, 0.001, 0.01, terms="no_lpips")), restarts=(), score_every=2)
+    result = refine(stage2_phantom, layers_target, schedule, threads=1)
+    assert result.falls == [2] and result.iterations == 2 + 2
+    assert [lr for _, lr, _ in steps] == [(2.0, 2.0)] * 2 + [(0.001 * FALL_LR_FACTOR, 0.01 * FALL_LR_FACTOR)] * 2
+    np.testing.assert_array_equal(steps[2][0], steps[0][0])
+    assert steps[2][2] == 0
+
+
 def test_a_fallen_main_run_goes_back_to_its_best(stage2_phantom, layers_target, monkeypatch):
     """Steps far too long make the checkpoints fall below the start: back to the best, at half the rates.
 
