@@ -70,6 +70,11 @@ shorter than the iterations the main run left), the last restart is
 repeated while each gains, so a scene that still gains keeps its
 iterations.
 
+A phase may end before its length (:attr:`Phase.patience`): the tissue
+regime's pixel phases, whose exact score on orange.png peaked at step 40
+and then fell while the hinge after them climbs at once
+(host/pipeline/invert.py, ``TISSUE_PIXEL_PATIENCE``).
+
 Falls (:attr:`RefineSchedule.max_falls`). One default run of Uniform A in
 eight fell 2.1e−3 below the others: its first 20 steps took the exact score
 from 0.99605 down to 0.99592 (the RSC map broke), and the main run went on

@@ -113,10 +113,11 @@ class Phase:
         the interval's upper bound to the power γ (:class:`octcl.host.stage3.hinge.LevelHinge`): 0 in absolute
         magnitude, 1 relative to the pixel's own. 0 for the other phases.
     patience : int or None
-        An Adam phase of the main run ends early, and the main run goes on with its next phase from where it
-        is, at a checkpoint where the best exact score has gained less than the schedule's ``min_gain`` over
-        the last ``patience`` checkpoints (of the main run, this phase's or the ones before). None: the phase
-        runs its length. Off without adaptive stopping (``min_gain`` None); a hinge phase has its own end.
+        An Adam phase ends early at a checkpoint where the best exact score has gained less than the
+        schedule's ``min_gain`` over the last ``patience`` checkpoints (of its run, this phase's or the ones
+        before), and its run (the main run, or a restart) goes on with its next phase from where it is (from
+        the best phantom where that checkpoint fell). None: the phase runs its length. Off without adaptive
+        stopping (``min_gain`` None); a hinge phase has its own end.
     """
 
     iterations: int
