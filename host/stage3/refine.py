@@ -787,6 +787,8 @@ class _Descent:
             phase = self.steps[step]
             self.refinement.check_ceiling(self.stage)
             if phase.terms == HINGE:
+                if step in self.checkpoints:  # the iterate the hinge starts from: where the phase before it ended
+                    self._score_end(step)
                 length = next((end for end in range(step, len(self.steps)) if self.steps[end] is not phase),
                               len(self.steps)) - step
                 step = _HingeRun(self, step, phase.relative_exponent).run(length)
@@ -901,8 +903,8 @@ class _Descent:
         self.refinement.report(self.stage)
 
     def _score_end(self, step: int) -> None:
-        """Score the last iterate (not rendered yet) after a run of ``step`` > 0 steps, if that still fits and a
-        hinge phase's last iteration has not scored it."""
+        """Score the iterate (not rendered yet) after ``step`` > 0 steps, at the run's end or where a hinge phase
+        begins, if that still fits and nothing scored it there."""
         if not (step and step != self.scored_after and self.refinement.clock.fits("render", "score")):
             return
         refiner = self.refinement.refiner

@@ -194,6 +194,17 @@ def test_adam_phases_go_on_after_a_hinge_phase(shadowed_start):
     assert len(losses) == 4  # the Adam steps' losses; the hinge's iterations log none
 
 
+def test_the_iterate_a_hinge_phase_starts_from_is_scored_at_a_checkpoint(shadowed_start):
+    """Checkpoints every 2 steps: the pixel phase's last iterate (step 4), where the hinge begins, is scored
+    before the hinge moves it, as the hinge's own at 6 and the last at 7."""
+    start, aim = shadowed_start
+    schedule = RefineSchedule(phases=(Phase(4, 0.001, 0.02, terms="pixel"), Phase(3, 0.0, 0.0, terms=HINGE)),
+                              restarts=(), score_every=2, min_gain=None)
+    result = refine(start, aim, schedule, aim=aim, threads=1)
+    assert result.iterations == 7
+    assert [entry["iteration"] for entry in result.trace if entry["score"] is not None] == [0, 2, 4, 6, 7]
+
+
 @pytest.mark.clock
 def test_a_hinge_phase_keeps_the_deadline(shadowed_start):
     """Its iterations stop where the next one and a score would end past the deadline; the last is scored."""
