@@ -780,7 +780,12 @@ class _Descent:
 
         A stalled run, or one that set the refinement's ``stop_reason`` at a
         checkpoint, returns there without scoring again; one the deadline
-        stops scores its last iterate if that still fits.
+        stops scores its last iterate if that still fits. The iterate a hinge
+        phase begins from is scored where its step is a checkpoint: the hinge
+        scores after its own iterations, and on a skin its first ones score
+        below the Adam phase before it (docs/benchmarks.md, "The iterate a
+        hinge phase starts from is scored"); a rounded copy is scored, and the
+        hinge starts from the iterate as it was.
         """
         step = 0
         while step < len(self.steps):
@@ -904,15 +909,19 @@ class _Descent:
 
     def _score_end(self, step: int) -> None:
         """Score the iterate (not rendered yet) after ``step`` > 0 steps, at the run's end or where a hinge phase
-        begins, if that still fits and nothing scored it there."""
+        begins, if that still fits and nothing scored it there. What is scored is a copy on the file's grid
+        (:meth:`_Refiner.round_as_saved`): the iterate itself goes on unrounded, so that a hinge phase starts
+        where it would without this score."""
         if not (step and step != self.scored_after and self.refinement.clock.fits("render", "score")):
             return
         refiner = self.refinement.refiner
-        refiner.round_as_saved(self.z_um, self.log_energy)
-        rendering = refiner.render(self.z_um, self.log_energy, for_adjoint=False)
+        z_um, log_energy = self.z_um.copy(), self.log_energy.copy()
+        refiner.round_as_saved(z_um, log_energy)
+        rendering = refiner.render(z_um, log_energy, for_adjoint=False)
         components = refiner.score(rendering)
+        self.scored_after = step
         self.refinement.log(self.stage, step, components["mean"])
-        self.refinement.consider(components, self.stage, step, self.z_um, self.log_energy, rendering.levels)
+        self.refinement.consider(components, self.stage, step, z_um, log_energy, rendering.levels)
         self.refinement.report(self.stage)
 
 
