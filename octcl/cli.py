@@ -618,8 +618,9 @@ def _add_invert_command(command) -> None:
                    help="stop refining once the exact score reaches S (default: when it stops improving)")
     p.add_argument("--stop-rule", choices=("restarts", "stall", "none"), default="restarts",
                    help="when stage 3 ends before its schedule: restarts (default): once a restart gains less "
-                        "than 1e-5 of score (tissue: two in a row less than 5e-6 together); stall: also the main run after 2 checkpoints without that gain "
-                        "(about half the time; on the development set up to 2.3e-4 lower on a scan); none: "
+                        "than 1e-5 of score (tissue: two in a row less than 5e-6 together); stall: also the "
+                        "main run after 2 checkpoints without that gain (about half the time; on the "
+                        "development set up to 2.3e-4 lower on a scan); none: "
                         "never, the whole schedule within --time-budget (docs/benchmarks.md)")
     p.add_argument("--report", help="JSON report: score trace against time, per stage")
     p.add_argument("--config", help="Configuration.ini")

@@ -212,6 +212,7 @@ LINEAR_SCHEDULE = RefineSchedule(phases=(Phase(10, 0.0001, 0.001),),
 #: 99.11 % in the mean to 0.9999778 and 99.48 %, every one ≥ 99.16 %, 106–168 s; orange.png the same 0.9998955
 #: (docs/benchmarks.md, "Hinge restarts judged two at a time").
 TISSUE_MIN_GAIN = 5e-6
+TISSUE_RESTART_PATIENCE = 2
 #: The pixel phases end once two checkpoints (40 steps) gained less than :data:`TISSUE_MIN_GAIN`, and the hinge
 #: begins: on orange.png the pixel phase's best came at step 40 and its exact score then fell (0.99920 to 0.99880
 #: at step 120) while the hinge climbs at once, and 30 s runs on two slow cores ended at steps 133–155, the orange
@@ -219,7 +220,6 @@ TISSUE_MIN_GAIN = 5e-6
 #: phase gains ≥ 2.7e−5 over every two checkpoints and runs its length (docs/benchmarks.md, "The tissue pixel
 #: phase ends where it stops gaining").
 TISSUE_PIXEL_PATIENCE = 2
-TISSUE_RESTART_PATIENCE = 2
 TISSUE_SCHEDULE = RefineSchedule(phases=(Phase(100, 0.001, 0.02, terms="pixel", patience=TISSUE_PIXEL_PATIENCE),
                                          Phase(40, 0.00025, 0.005, terms="pixel", patience=TISSUE_PIXEL_PATIENCE),
                                          Phase(300, 0.0, 0.0, terms="hinge"),

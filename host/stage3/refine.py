@@ -794,9 +794,7 @@ class _Descent:
             if phase.terms == HINGE:
                 if step in self.checkpoints:  # the iterate the hinge starts from: where the phase before it ended
                     self._score_end(step)
-                length = next((end for end in range(step, len(self.steps)) if self.steps[end] is not phase),
-                              len(self.steps)) - step
-                step = _HingeRun(self, step, phase.relative_exponent).run(length)
+                step = _HingeRun(self, step, phase.relative_exponent).run(self._phase_end(step) - step)
                 if self.refinement.stop_reason == "deadline":
                     self._score_end(step)
                     return False
@@ -813,9 +811,7 @@ class _Descent:
                 return self.stalled
             if self.phase_ended:  # scored here and stalled: the next phase from this iterate, without a step
                 self.phase_ended = False
-                step = next((end for end in range(step, len(self.steps)) if self.steps[end] is not phase),
-                            len(self.steps))
-                self.scored_after = step
+                step = self.scored_after = self._phase_end(step)
                 continue
             step += 1
         self.refinement.check_ceiling(self.stage)
@@ -851,7 +847,7 @@ class _Descent:
             fallen = self._has_fallen(components["mean"])
             if fallen:
                 lpips_mode = self._go_back(step, lpips_mode)
-            if self._phase_stalled(phase):  # the next phase begins here (from the best, where this one fell)
+            if self._gained_less(phase.patience):  # the next phase begins here (from the best, where this one fell)
                 self.phase_ended = True
                 self.refinement.report(self.stage)
                 return True
@@ -867,16 +863,20 @@ class _Descent:
         entry["score"] = components["mean"]
         self.refinement.consider(components, self.stage, step, self.z_um, self.log_energy, rendering.levels)
         self.best_after.append(self.refinement.best.score)
-        patience = self.schedule.patience
-        self.stalled = bool(patience and len(self.best_after) > patience
-                            and self.best_after[-1] - self.best_after[-1 - patience] < self.schedule.min_gain)
+        self.stalled = self._gained_less(self.schedule.patience)
         return components
 
-    def _phase_stalled(self, phase: Phase) -> bool:
-        """Whether ``phase`` ends at this checkpoint: its patience's checkpoints gained less than ``min_gain``."""
-        patience, min_gain = phase.patience, self.schedule.min_gain
+    def _gained_less(self, patience: int | None) -> bool:
+        """Whether the best score gained less than ``min_gain`` over the last ``patience`` checkpoints (False
+        without a patience, without adaptive stopping, or before that many checkpoints)."""
+        min_gain = self.schedule.min_gain
         return bool(patience and min_gain is not None and len(self.best_after) > patience
                     and self.best_after[-1] - self.best_after[-1 - patience] < min_gain)
+
+    def _phase_end(self, step: int) -> int:
+        """The first step after ``step`` whose phase is not step ``step``'s (the run's length after its last)."""
+        phase = self.steps[step]
+        return next((end for end in range(step, len(self.steps)) if self.steps[end] is not phase), len(self.steps))
 
     def _has_fallen(self, score: float) -> bool:
         """A guarded run's checkpoint below its start or too far below the best (:attr:`RefineSchedule.max_falls`)."""
