@@ -375,6 +375,21 @@ def write_summary(out: Path) -> str:
     return text
 
 
+def restart_stages(trace: list[dict]) -> list[tuple[float, float, float]]:
+    """Per restart of a report's ``trace``, in order: (the best exact score before it, the best after it, the
+    time of its last entry in seconds)."""
+    best, stages = -np.inf, []
+    for entry in trace:
+        stage = entry["stage"]
+        if stage.startswith("restart") and (not stages or stages[-1]["stage"] != stage):
+            stages.append({"stage": stage, "before": best})
+        if entry.get("score") is not None:
+            best = max(best, entry["score"])
+        if stages and stages[-1]["stage"] == stage:
+            stages[-1].update(after=best, end_s=entry["time_s"])
+    return [(float(stage["before"]), float(stage["after"]), float(stage["end_s"])) for stage in stages]
+
+
 def replay_restart_rule(trace: list[dict], total_s: float, min_gain: float,
                         patience: int = 1) -> tuple[float, float]:
     """(best score, seconds) where a run would have stopped after the first ``patience`` restarts in a row that
@@ -386,21 +401,12 @@ def replay_restart_rule(trace: list[dict], total_s: float, min_gain: float,
     run spent after its last trace entry (the final writes). Without such
     restarts: the run's own best score and time.
     """
-    best, stage, end, parents = -np.inf, None, None, []
-    for entry in trace:
-        if entry["stage"] != stage:
-            if (stage and stage.startswith("restart") and len(parents) >= patience
-                    and best - parents[-patience] < min_gain):
-                break
-            stage = entry["stage"]
-            if stage.startswith("restart"):
-                parents.append(best)
-        if entry.get("score") is not None:
-            best = max(best, entry["score"])
-        end = entry["time_s"]
-    else:
-        end = trace[-1]["time_s"]
-    return float(best), float(end + total_s - trace[-1]["time_s"])
+    stages = restart_stages(trace)
+    for index, (_, best, end) in enumerate(stages):
+        if index + 1 >= patience and best - stages[index + 1 - patience][0] < min_gain:
+            return best, end + total_s - trace[-1]["time_s"]
+    return float(max((entry["score"] for entry in trace if entry.get("score") is not None), default=-np.inf)), \
+        float(total_s)
 
 
 def comparison_plot(rows: dict, reports: dict, schedules: list[str]) -> bytes:

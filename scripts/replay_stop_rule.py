@@ -6,7 +6,8 @@ score at each restart's checkpoints. A rule that ends the refinement once
 the last P restarts together gained less than G
 (:attr:`octcl.host.stage3.schedule.RefineSchedule.min_gain`, ``restart_patience``)
 takes the same steps up to where it stops, so its score and time there are
-the trace's (:func:`bench_invert.replay_restart_rule`): one whole run per
+the trace's (:func:`bench_invert.replay_restart_rule`, over
+:func:`bench_invert.restart_stages`): one whole run per
 target compares every rule without rerunning.
 
 Prints markdown: per report, each restart's gain over the best before it
@@ -28,22 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_invert import replay_restart_rule  # noqa: E402  (a script beside this one)
-
-
-def restart_gains(trace: list[dict]) -> list[float]:
-    """Each restart's gain of best exact score over the best before it, in trace order."""
-    best, gains, stage, parent = float("-inf"), [], None, None
-    for entry in trace:
-        if entry["stage"] != stage:
-            if stage and stage.startswith("restart"):
-                gains.append(best - parent)
-            stage, parent = entry["stage"], best
-        if entry.get("score") is not None:
-            best = max(best, entry["score"])
-    if stage and stage.startswith("restart"):
-        gains.append(best - parent)
-    return gains
+from bench_invert import replay_restart_rule, restart_stages  # noqa: E402  (a script beside this one)
 
 
 def parse_rule(text: str) -> tuple[float, int]:
@@ -63,7 +49,7 @@ def table(reports: dict[str, dict], rules: list[tuple[float, int]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for name, report in reports.items():
         trace, total_s = report["trace"], report["seconds"]["total"]
-        gains = " ".join(f"{1e6 * gain:.1f}" for gain in restart_gains(trace))
+        gains = " ".join(f"{1e6 * (after - before):.1f}" for before, after, _ in restart_stages(trace))
         cells = [name, gains, f"{report['score']:.7f} / {total_s:.0f}"]
         for gain, patience in rules:
             score, seconds = replay_restart_rule(trace, total_s, gain, patience)

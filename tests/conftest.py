@@ -1,6 +1,8 @@
 """Shared pytest fixtures and options."""
 
+import importlib.util
 import os
+import sys
 import tempfile
 from pathlib import Path
 
@@ -18,6 +20,19 @@ from octcl.render import Rendering
 # Out-of-bounds accesses are always checked.
 OCLGRIND_LOG = Path(tempfile.mkdtemp(prefix="octcl-oclgrind-")) / "oclgrind.log"
 os.environ.update(OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", OCLGRIND_LOG=str(OCLGRIND_LOG))
+
+#: The repository's scripts/ folder, whose files are programs rather than a package (:func:`load_script`).
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def load_script(name: str):
+    """scripts/NAME.py executed afresh as the module NAME (also put in ``sys.modules``, where dataclasses and
+    pickling look for it), for tests of a script's functions."""
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    module = sys.modules[name] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
 
 #: How to get each OpenCL implementation the kernel tests run on, for the reason of a skip.
 IMPLEMENTATION_SOURCES = {

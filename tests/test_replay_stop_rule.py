@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_script
 
 
 def replay_script():
-    spec = importlib.util.spec_from_file_location("replay_stop_rule", ROOT / "scripts" / "replay_stop_rule.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("replay_stop_rule")
 
 
 def trace_with_gains(gains_e6: list[float]) -> list[dict]:
@@ -32,7 +27,9 @@ def trace_with_gains(gains_e6: list[float]) -> list[dict]:
 
 def test_restart_gains_are_each_restarts_best_over_the_best_before_it():
     script = replay_script()
-    assert script.restart_gains(trace_with_gains([8.0, 1.0, 3.0])) == pytest.approx([8e-6, 1e-6, 3e-6], abs=1e-12)
+    stages = script.restart_stages(trace_with_gains([8.0, 1.0, 3.0]))
+    assert [after - before for before, after, _ in stages] == pytest.approx([8e-6, 1e-6, 3e-6], abs=1e-12)
+    assert [end for _, _, end in stages] == [11.0, 21.0, 31.0]
 
 
 def test_a_rule_stops_after_the_restarts_it_judges(tmp_path, capsys):

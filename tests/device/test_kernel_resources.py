@@ -1,6 +1,5 @@
 """scripts/kernel_resources.py: offline GPU builds of every kernel and their resource reports."""
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -17,14 +16,14 @@ from octcl.host.optim import lbfgs_device
 from octcl.host.stage1 import display_device, levels_device, operator_device as field_kernels
 from octcl.host.stage1.operator import FieldOperator, padded_column_count
 
+from conftest import load_script
+
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "scripts" / "kernel_resources.py"
 #: The field operator's lateral reach R at the default scanner, as FieldKernels takes it.
 FIELD_REACH = (FieldOperator(DEFAULT_CONFIG).taps.size - 1) // 2
 
-_spec = importlib.util.spec_from_file_location("kernel_resources", SCRIPT)
-kr = sys.modules.setdefault("kernel_resources", importlib.util.module_from_spec(_spec))
-_spec.loader.exec_module(kr)
+kr = load_script("kernel_resources")
 
 
 def run_script(*args: str) -> subprocess.CompletedProcess:

@@ -14,7 +14,6 @@ psutil's Windows counters) is listed in docs/portability.md.
 from __future__ import annotations
 
 import configparser
-import importlib.util
 import json
 import os
 import platform
@@ -28,14 +27,13 @@ from packaging.requirements import Requirement
 
 from octcl.device import runtime as _runtime
 
+from conftest import load_script
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def check_platforms():
-    spec = importlib.util.spec_from_file_location("check_platforms", ROOT / "scripts" / "check_platforms.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("check_platforms")
 
 
 def setup_cfg_requirements() -> list[str]:
