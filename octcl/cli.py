@@ -269,8 +269,8 @@ def _invert_lines(result: dict) -> list[str]:
             f"on the target's level: {100 * result['exact_share']:.2f} % of pixels; "
             f"{100 * result['ceiling']['writable_share']:.2f} % are at levels the scanner writes, "
             f"{100 * result['avoidable_share']:.2f} % of pixels are writable and off their level; "
-            f"the target moved to writable levels scores {_ceiling_score(result['ceiling']['nearest_score'])} "
-            f"(nearest) and {_ceiling_score(result['ceiling']['diffused_score'])} (error-diffused)",
+            f"the target moved to writable levels by error diffusion scores "
+            f"{_ceiling_score(result['ceiling']['diffused_score'])}",
             *_tissue_lines(result.get("tissue"))]
 
 

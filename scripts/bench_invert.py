@@ -239,7 +239,7 @@ def bench_run(args, name: str, target: Path, target_array: np.ndarray, exact_sco
                                           f"{report['seconds']['total']:.0f} s"))
     ceiling = report["ceiling"]
     reached = time_to_scores(report["trace"], components["mean"],
-                             {"nearest": ceiling["nearest_score"], "diffused": ceiling["diffused_score"]})
+                             {"diffused": ceiling["diffused_score"]})
     row = {"scan": name, "schedule": schedule, "seed": seed,
            **{c: components[c] for c in COMPONENTS},
            "mean": components["mean"], "initial_score": report["initial_score"],
@@ -249,7 +249,7 @@ def bench_run(args, name: str, target: Path, target_array: np.ndarray, exact_sco
            "reproducible": report.get("reproducible"),
            "exact_share": float(np.mean(levels == target_levels(target_scan(target_array)))),
            "writable_share": ceiling["writable_share"], "avoidable_share": report["avoidable_share"],
-           "nearest_score": ceiling["nearest_score"], "diffused_score": ceiling["diffused_score"],
+           "diffused_score": ceiling["diffused_score"],
            "seconds": report["seconds"]["total"], "wall_s": wall,
            "written_s": report["seconds"]["written"],
            **{f"seconds_to_{label}": value for label, value in reached.items()},
@@ -283,7 +283,7 @@ def write_results(args, rows: dict, names: list[str]) -> None:
         json.dump(summary, handle, indent=1)
     columns = ["scan", "schedule", "seed", *COMPONENTS, "mean", "initial_score", "iterations", "field_iterations",
                "stop_reason", "falls", "reproducible", "exact_share", "writable_share", "avoidable_share",
-               "nearest_score", "diffused_score", "seconds", "wall_s", "written_s", *[key for key in next(iter(rows.values())) if
+               "diffused_score", "seconds", "wall_s", "written_s", *[key for key in next(iter(rows.values())) if
                                                      key.startswith("seconds_to_")],
                "peak_memory_mib", "load_average"]
     write_csv(args.out / "bench.csv", columns, rows.values())

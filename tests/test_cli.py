@@ -277,12 +277,12 @@ def test_invert_summary_says_where_the_main_run_fell():
               "regime": "linear", "seed": 0, "threads": 1, "reproduce": "--seed 0", "reproducible": True,
               "checkpoints": 2,
               "peak_memory_mib": 100.0, "seconds": {"total": 9.0}, "exact_share": 0.9, "avoidable_share": 0.002,
-              "ceiling": {"writable_share": 0.898, "nearest_score": 0.9997, "diffused_score": 0.9998}}
+              "ceiling": {"writable_share": 0.898, "diffused_score": 0.9998}}
     assert "iterations: 60 (fixed schedule, schedule completed); regime linear, field_iterations 5" in \
         "\n".join(_invert_lines(result))
     assert ("on the target's level: 90.00 % of pixels; 89.80 % are at levels the scanner writes, 0.20 % of "
-            "pixels are writable and off their level; the target moved to writable levels scores 0.999700 "
-            "(nearest) and 0.999800 (error-diffused)") in _invert_lines(result)
+            "pixels are writable and off their level; the target moved to writable levels by error diffusion "
+            "scores 0.999800") in _invert_lines(result)
     result["falls"] = [20, 40]
     assert "(fixed schedule, schedule completed; fell after steps 20, 40 and went back to the best phantom)" in \
         "\n".join(_invert_lines(result))
@@ -296,7 +296,7 @@ def test_invert_summary_says_when_the_score_was_left_out():
               "regime": "linear", "seed": 0, "threads": None, "reproduce": "--seed 0", "reproducible": True,
               "checkpoints": 1, "peak_memory_mib": 100.0, "seconds": {"total": 2.6}, "exact_share": 0.9,
               "avoidable_share": 0.0,
-              "ceiling": {"writable_share": 0.9, "nearest_score": None, "diffused_score": None}}
+              "ceiling": {"writable_share": 0.9, "diffused_score": None}}
     lines = _invert_lines(result)
     assert lines[0].startswith("p.txt: 10 scatterers, score left out: computing it")
     assert "past the time budget" in lines[0] and not any("msssim" in line.lower() for line in lines)

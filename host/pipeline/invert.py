@@ -73,7 +73,7 @@ from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.torch_import import import_torch_in_background, torch_import_s
 
 from ..stage1.backend import BACKENDS, make_backend
-from ..stage1.ceiling import WRITABLE, aimed_levels, error_diffused, measure_ceiling, nearest_writable
+from ..stage1.ceiling import WRITABLE, aimed_levels, error_diffused, measure_ceiling
 from ..stage1.levels import target_levels
 from ..stage1.start import DISPLAY_ITERATIONS
 from ..stage3.refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, RefineClock, check_target_score, refine
@@ -241,7 +241,7 @@ FIXED_THREADS = 1
 FINAL_RESERVE_S = 7.0
 FINAL_RESERVE_FRACTION = 0.15
 #: Factor on what follows stage 3 by this run's measures (:meth:`_Run.after_stage_3_s`): its first write, the
-#: ceiling's scores still to compute, the tissue figures. Stage 3 keeps back that, with this margin for a
+#: ceiling's score still to compute, the tissue figures. Stage 3 keeps back that, with this margin for a
 #: loaded machine, and :data:`EXIT_RESERVE_S`, where it is less than :func:`final_reserve_s`: a 30 s tissue run
 #: of orange.png kept back 4.5 s and ended at 26.7 s (two first-generation Zen cores), its write taking 0.37 s,
 #: the ceiling's score 0.45 s and the figures about 0.4 s after stage 3.
@@ -327,7 +327,7 @@ class InvertResult:
     ceiling : dict
         What the target allows, measured apart from the inversion
         (:class:`octcl.host.stage1.ceiling.Ceiling`): ``writable_share``,
-        ``nearest_score``, ``diffused_score``.
+        ``diffused_score``.
     exact_share : float
         Share of pixels the written phantom renders at the target's level.
     avoidable_share : float
@@ -808,7 +808,7 @@ def invert(target, output_path, time_budget_s: float = 600.0, seed: int = 0, rep
         Wall-clock budget in seconds for the whole inversion, from
         ``started``, reading the target and compiling the kernels included:
         the phantom is written within it. Scoring the written phantom for
-        the result (and the ceiling's two scores) may end later, as stage 3
+        the result (and the ceiling's score) may end later, as stage 3
         does nothing after the deadline. Without ``iterations``
         (deadline mode) stage 1 gets min(8 % of it, 45 s), stage 2 runs
         once and stage 3 gets the rest, so how far each stage gets depends
@@ -1072,11 +1072,11 @@ class _Run:
 
     def after_stage_3_s(self) -> float:
         """Seconds of what follows stage 3, by this run's and this machine's measures: a write (this run's
-        first), the ceiling's scores not computed yet (:meth:`_LazyExactScore.cost_s`) and, in the tissue
+        first), the ceiling's score where not computed yet (:meth:`_LazyExactScore.cost_s`) and, in the tissue
         regime, the figures (:meth:`tissue_figures_s`)."""
         levels = self.exact_score.levels
-        images = () if WRITABLE[levels].all() else (nearest_writable(levels), error_diffused(levels))
-        seconds = self.first_write_s + sum(self.exact_score.cost_s(image) for image in images)
+        ceiling = 0.0 if WRITABLE[levels].all() else self.exact_score.cost_s(error_diffused(levels))
+        seconds = self.first_write_s + ceiling
         return seconds + (self.tissue_figures_s() if self.plan.regime == "tissue" else 0.0)
 
     def tissue_figures_s(self) -> float:
@@ -1124,12 +1124,13 @@ class _Run:
     def outcome(self, name: str, first: _Start, result) -> tuple[InvertResult, dict]:
         """The result and the report's settings, after the last write.
 
-        The ceiling of the target (up to two exact scores, none for a target
-        the scanner could have written, none again for an image the run has
-        scored already) and where the phantom stands under it (the levels
-        its score was computed from) come after the last write; in deadline
-        mode a ceiling score that would end past the budget is left out
-        (None, and the summary says so).
+        The ceiling of the target (the error-diffused image's exact score:
+        none for a target the scanner could have written, and none again
+        where the run has scored that image already, as the aim step does)
+        and where the phantom stands under it (the levels its score was
+        computed from) come after the last write; in deadline mode a ceiling
+        score that would end past the budget is left out (None, and the
+        summary says so).
         """
         plan, seconds, writer = self.plan, self.seconds, self.writer
         seconds["refine"] = self.elapsed() - self.offset
