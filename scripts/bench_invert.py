@@ -39,7 +39,7 @@ Writes, in ``--out``:
   stage 3; with several ``--schedules``, each one's score difference and
   time ratio to the first, its global score and median seconds; the
   seconds each run took to reach 0.9947, 0.998, 0.999, 0.9995, 0.9998, its final score
-  − 1e−4 and the scores of the target's nearest-writable and error-diffused images (the
+  − 1e−4 and the score of the target's error-diffused image (the
   ceiling, host/stage1/ceiling.py, beside the shares of pixels exact, writable and avoidably off); and stage 3's time per iteration, part by part, in wall and CPU
   seconds (``--summarise`` writes it again from the files).
 
@@ -160,7 +160,7 @@ def time_to_scores(trace: list[dict], final: float, others: dict | None = None) 
     """Seconds from the run's start until its best exact score first reached each of :data:`SCORE_LEVELS`.
 
     ``final`` is the run's final score; its level is final − 1e−4. ``others``
-    adds {label: score} (the target's ceiling images' scores). None where
+    adds {label: score} (the target's ceiling score). None where
     never reached; a ceiling score a budget left out (None) is not a level.
     """
     levels = {**{f"{level:g}": level for level in SCORE_LEVELS}, "final-1e-4": final - 1e-4, **(others or {})}
