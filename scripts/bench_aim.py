@@ -9,9 +9,15 @@ it was kept; last, the field's reach of the aim the rounds kept, by the
 hinge fit alone and by :meth:`octcl.host.stage1.solve.FieldSolve.reach`
 (projections, then the hinge fit). Prints a table per target.
 
+With ``--singles N``, the first N pixels of the first round's proposal are
+then moved one at a time from the error-diffused aim: each one's predicted
+change of the loss (g_p·ΔD_p), its exact change of the score and of each of
+the eight components: what the gradient's ranking gets right and which
+map's term it misses.
+
 Example::
 
-    python scripts/bench_aim.py ../shared/data/real/orange.png OUT/targets/plain_skin_0.png --rounds 4
+    python scripts/bench_aim.py ../shared/data/real/orange.png OUT/targets/plain_skin_0.png --rounds 4 --singles 4
 """
 
 from __future__ import annotations
@@ -37,7 +43,25 @@ def timed(function, *args):
     return value, time.perf_counter() - start
 
 
-def bench(path: Path, rounds: int, first: bool) -> None:
+def single_moves(search: AimSearch, exact, aim: np.ndarray, count: int) -> None:
+    """Print the first ``count`` pixels of ``search``'s proposal from ``aim`` moved one at a time: the predicted
+    change of the loss and the exact change of the score and of each component."""
+    base = exact(aim)
+    proposed, picks = search.proposal(aim)
+    predicted = search.predicted_change(aim)
+    print(f"  single moves (first {min(count, picks.size)} of the first round's {picks.size}):")
+    for pick in picks[:count]:
+        moved = aim.copy()
+        moved.flat[pick] = proposed.flat[pick]
+        components = exact(moved)
+        row, column = divmod(int(pick), aim.shape[1])
+        changes = " ".join(f"{name.replace('one_minus_', '1-')} {components[name] - base[name]:+.1e}"
+                           for name in components if name != "mean")
+        print(f"    ({row},{column}) level {aim.flat[pick]}->{proposed.flat[pick]}: predicted {predicted[pick]:+.2e}, "
+              f"score {components['mean'] - base['mean']:+.2e}; {changes}")
+
+
+def bench(path: Path, rounds: int, first: bool, singles: int = 0) -> None:
     target = read_target(path)
     levels = target_levels(target, DEFAULT_CONFIG)
     aim = aimed_levels(levels)
@@ -78,15 +102,19 @@ def bench(path: Path, rounds: int, first: bool) -> None:
     rows.append(("score: aim kept against error-diffused", 0.0, f"{current_score - base['mean']:+.2e}"))
     for name, seconds, note in rows:
         print(f"  {name:<40} {seconds:7.3f} s  {note}")
+    if singles:
+        single_moves(AimSearch(levels, lambda image: exact(image)["mean"]), exact, aim, singles)
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("targets", nargs="+", type=Path, help="target B-scans (PNG or .npy of levels)")
     parser.add_argument("--rounds", type=int, default=4, help="aim rounds at most (default 4, invert's)")
+    parser.add_argument("--singles", type=int, default=0,
+                        help="then move the first round's first N pixels one at a time (default 0: none)")
     args = parser.parse_args(argv)
     for index, path in enumerate(args.targets):
-        bench(path, args.rounds, first=index == 0)
+        bench(path, args.rounds, first=index == 0, singles=args.singles)
 
 
 if __name__ == "__main__":

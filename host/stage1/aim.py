@@ -23,6 +23,16 @@ for a few pixels at a time, and for pixels apart: on orange.png the first
 apart; on a plainly quantised skin rendering (seed 5) 2.9e−6 and 7.6e−6
 (spacings of 0, 4, 8, 16 and 32 pixels measured; 32 lost on orange).
 
+What the gradient misses: the score sees 8-bit maps, the loss continuous
+ones. Moved one at a time from the error-diffused aim (``scripts/bench_aim.py
+--singles 4``, docs/bench/aim_singles), the first four pixels of the first
+round, all predicted to gain, changed the score by −8.2e−6 to +8.1e−7 on
+orange.png and plainly quantised skins 0 and 3, and 4 of the 12 gained.
+Each move changed 1 − LPIPS of the SC and RSC maps by up to 3.2e−5 either
+way, their MS-SSIM by up to 5.7e−6, the Struct terms by at most 4e−7: the
+speckle-contrast maps' 8-bit levels over each window around the pixel move
+or do not, which the slope of the continuous maps does not tell.
+
 Every round moves :data:`BATCH` pixels, and the search stops at the first
 round the exact score rejects. Until octcl 0.8.5 a rejected round halved
 the batch and the search stopped after two rejections in a row: of nine
@@ -131,7 +141,7 @@ class AimSearch:
         """Each pixel's level on the other side of its target level: L ± 1 ↔ L ∓ 1."""
         return (2 * self.levels.astype(np.int16) - aim).astype(np.uint8)
 
-    def _predicted_change(self, aim: np.ndarray) -> np.ndarray:
+    def predicted_change(self, aim: np.ndarray) -> np.ndarray:
         """g_p·(D(a'_p) − D(a_p)) for every pixel at the first aim this is asked for, 0 where it may not move
         (module docstring): computed once."""
         if self._change is None:
@@ -147,7 +157,7 @@ class AimSearch:
         """``aim`` with up to :data:`BATCH` pixels on their other side, and their flat indices: in order of most
         negative predicted change, each more than :data:`SPACING_PX` from those taken before it and from every
         pixel a kept move moved."""
-        change = np.where(self._blocked.ravel(), 0.0, self._predicted_change(aim))
+        change = np.where(self._blocked.ravel(), 0.0, self.predicted_change(aim))
         order = np.argsort(change, kind="stable")
         order = order[change[order] < 0]
         rows, columns = np.divmod(order, aim.shape[1])
