@@ -12,7 +12,9 @@ Prints, and writes to ``--out``/``versions.csv`` and ``versions.md``, per
 target and tree: the median wall time over the repeats, the longest, the
 time the phantom was in place (the report's ``seconds.written``), and the
 score; then per tree the median wall time over the targets, the longest,
-and the global score (the mean of the 8 per-component medians).
+and the global score (the mean of the 8 per-component medians), and where
+the time went, each part's median over the runs (:func:`run_parts`, from
+the report and the wall time).
 
 Example (0.7.0 against the working tree, default options, real-like targets)::
 
@@ -80,6 +82,50 @@ def run_tree(tree: Path, target: Path, output: Path, report: Path, options: list
     return time.monotonic() - start
 
 
+#: Stage 1's steps whose seconds :func:`run_parts` reads from the report, summed over its candidates.
+FIELD_STEPS = ("display", "project", "hinge", "aim")
+#: :func:`run_parts`'s parts, in a run's order.
+PARTS = ("before stage 1", *FIELD_STEPS, "decode", "to the write", "after the write")
+
+
+def run_parts(report: dict, wall_s: float) -> dict[str, float]:
+    """Seconds of one run's parts: before stage 1 (the interpreter, the imports, the target, the device's
+    programs), stage 1's steps (:data:`FIELD_STEPS`), the decode, from the decode to the phantom in place (the
+    write and stage 3), and from there to the process's exit (the scores, the summary)."""
+    seconds = report["seconds"]
+    field_end = next(entry["time_s"] for entry in report["trace"] if entry["stage"] == "field")  # after the decode
+    steps = [step for candidate in report["settings"]["field_candidates"] or () for step in candidate["steps"]]
+    return {"before stage 1": field_end - seconds["field"] - seconds["decode"],
+            **{name: sum(step["seconds"] for step in steps if step["name"] == name) for name in FIELD_STEPS},
+            "decode": seconds["decode"], "to the write": seconds["written"] - field_end,
+            "after the write": wall_s - seconds["written"]}
+
+
+def table_lines(rows: list[dict], names: list[str]) -> list[str]:
+    """versions.md: per target and tree, then per tree the medians, the global score and the parts."""
+    lines = ["| target | " + " | ".join(f"{name} wall s (max) / written s / score" for name in names) + " |",
+             "|---|" + "---|" * len(names)]
+    for target in dict.fromkeys(row["target"] for row in rows):
+        cells = []
+        for name in names:
+            runs = [row for row in rows if row["target"] == target and row["tree"] == name]
+            cells.append(f"{np.median([r['wall_s'] for r in runs]):.2f} ({max(r['wall_s'] for r in runs):.2f}) / "
+                         f"{np.median([r['written_s'] for r in runs]):.2f} / {runs[0]['mean']:.7f}")
+        lines.append(f"| {target} | " + " | ".join(cells) + " |")
+    for name in names:
+        runs = [row for row in rows if row["tree"] == name]
+        by_target = {}
+        for row in runs:
+            by_target.setdefault(row["target"], []).append(row["wall_s"])
+        medians = [float(np.median(walls)) for walls in by_target.values()]
+        firsts = [row for row in runs if row["repeat"] == 0]
+        parts = ", ".join(f"{part} {np.median([row[part] for row in runs]):.2f}" for part in PARTS)
+        lines.append(f"\n{name}: median wall {np.median(medians):.2f} s over {len(medians)} targets, longest "
+                     f"{max(medians):.2f} s; global score {global_score(firsts)[1]:.7f} "
+                     f"(over the targets' first runs); parts, median s over the runs: {parts}")
+    return lines
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--trees", nargs="+", type=Path, required=True, help="source trees, the first the baseline")
@@ -101,32 +147,14 @@ def main(argv=None) -> None:
                 report = json.loads(report_path.read_text())
                 components = exact(render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels)
                 rows.append({"target": target.stem, "tree": name, "repeat": repeat, "wall_s": wall,
-                             "written_s": report["seconds"]["written"], **components})
+                             "written_s": report["seconds"]["written"], **run_parts(report, wall), **components})
                 print(f"{target.stem} {name} r{repeat}: {wall:.2f} s, written {report['seconds']['written']:.2f} s, "
                       f"score {components['mean']:.7f}", flush=True)
     with open(args.out / "versions.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    lines = ["| target | " + " | ".join(f"{name} wall s (max) / written s / score" for name in names) + " |",
-             "|---|" + "---|" * len(names)]
-    for target in dict.fromkeys(row["target"] for row in rows):
-        cells = []
-        for name in names:
-            runs = [row for row in rows if row["target"] == target and row["tree"] == name]
-            cells.append(f"{np.median([r['wall_s'] for r in runs]):.2f} ({max(r['wall_s'] for r in runs):.2f}) / "
-                         f"{np.median([r['written_s'] for r in runs]):.2f} / {runs[0]['mean']:.7f}")
-        lines.append(f"| {target} | " + " | ".join(cells) + " |")
-    for name in names:
-        runs = [row for row in rows if row["tree"] == name]
-        by_target = {}
-        for row in runs:
-            by_target.setdefault(row["target"], []).append(row["wall_s"])
-        medians = [float(np.median(walls)) for walls in by_target.values()]
-        firsts = [row for row in runs if row["repeat"] == 0]
-        lines.append(f"\n{name}: median wall {np.median(medians):.2f} s over {len(medians)} targets, longest "
-                     f"{max(medians):.2f} s; global score {global_score(firsts)[1]:.7f} "
-                     "(over the targets' first runs)")
+    lines = table_lines(rows, names)
     (args.out / "versions.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
