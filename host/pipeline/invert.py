@@ -73,7 +73,7 @@ from octcl.phantom import CONTRACT_Y_LIMIT_UM, TARGET_ROWS, Phantom
 from octcl.torch_import import import_torch_in_background, torch_import_s
 
 from ..stage1.backend import BACKENDS, make_backend
-from ..stage1.ceiling import WRITABLE, aimed_levels, error_diffused, measure_ceiling
+from ..stage1.ceiling import WRITABLE, aimed_levels, ceiling_image, measure_ceiling
 from ..stage1.levels import target_levels
 from ..stage1.start import DISPLAY_ITERATIONS
 from ..stage3.refine import Phase, RefineProgress, RefineSchedule, TimeBudgetExceeded, RefineClock, check_target_score, refine
@@ -1074,9 +1074,8 @@ class _Run:
         """Seconds of what follows stage 3, by this run's and this machine's measures: a write (this run's
         first), the ceiling's score where not computed yet (:meth:`_LazyExactScore.cost_s`) and, in the tissue
         regime, the figures (:meth:`tissue_figures_s`)."""
-        levels = self.exact_score.levels
-        ceiling = 0.0 if WRITABLE[levels].all() else self.exact_score.cost_s(error_diffused(levels))
-        seconds = self.first_write_s + ceiling
+        image = ceiling_image(self.exact_score.levels)
+        seconds = self.first_write_s + (0.0 if image is None else self.exact_score.cost_s(image))
         return seconds + (self.tissue_figures_s() if self.plan.regime == "tissue" else 0.0)
 
     def tissue_figures_s(self) -> float:

@@ -138,6 +138,12 @@ class Ceiling:
         return asdict(self)
 
 
+def ceiling_image(levels: np.ndarray) -> np.ndarray | None:
+    """The image :func:`measure_ceiling` scores for target ``levels`` (:func:`error_diffused`'s), or None for a
+    target with every pixel writable, which is its own best image and is not scored."""
+    return None if writable_share(levels) == 1.0 else error_diffused(levels)
+
+
 def measure_ceiling(levels: np.ndarray, score) -> Ceiling:
     """The :class:`Ceiling` of target ``levels``; ``score(levels) -> float | None`` is the exact score against the
     target, or None for an image it leaves out.
@@ -145,12 +151,12 @@ def measure_ceiling(levels: np.ndarray, score) -> Ceiling:
     A target with every pixel writable is its own best image: its score is
     then 1.0 without being computed.
     """
-    share = writable_share(levels)
-    if share == 1.0:
+    image = ceiling_image(levels)
+    if image is None:
         return Ceiling(1.0, 1.0)
-    diffused = score(error_diffused(levels))
-    return Ceiling(share, None if diffused is None else float(diffused))
+    diffused = score(image)
+    return Ceiling(writable_share(levels), None if diffused is None else float(diffused))
 
 
-__all__ = ["WRITABLE", "Ceiling", "aimed_levels", "error_diffused", "measure_ceiling", "nearest_writable",
+__all__ = ["WRITABLE", "Ceiling", "aimed_levels", "ceiling_image", "error_diffused", "measure_ceiling", "nearest_writable",
            "writable_share"]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from octcl._io import GREY_LUT
-from octcl.host.stage1.ceiling import WRITABLE, Ceiling, aimed_levels, error_diffused, measure_ceiling, nearest_writable, writable_share
+from octcl.host.stage1.ceiling import WRITABLE, Ceiling, aimed_levels, ceiling_image, error_diffused, measure_ceiling, nearest_writable, writable_share
 
 #: The levels the colour map never writes (shared/physics.md §2, step 11).
 UNWRITABLE = (33, 37, 41, 45, 49, 53, 57, 61, 66, 74, 82, 90, 98, 106, 114, 122, 132, 148, 164, 180, 196, 212,
@@ -77,6 +77,8 @@ def test_measure_ceiling_scores_the_error_diffused_image_and_spares_a_writable_t
     ceiling = measure_ceiling(levels, lambda image: scored.append(image.copy()) or float(len(scored)) / 10)
     assert ceiling.writable_share == pytest.approx(0.75)
     assert len(scored) == 1 and np.array_equal(scored[0], error_diffused(levels))
+    # What a run reserves time for scoring (host/pipeline/invert.py) is the image scored here.
+    assert ceiling_image(writable) is None and np.array_equal(ceiling_image(levels), scored[0])
     assert ceiling.as_dict() == {"writable_share": 0.75, "diffused_score": 0.1}
 
 
