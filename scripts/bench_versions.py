@@ -12,9 +12,12 @@ Prints, and writes to ``--out``/``versions.csv`` and ``versions.md``, per
 target and tree: the median wall time over the repeats, the longest, the
 time the phantom was in place (the report's ``seconds.written``), and the
 score; then per tree the median wall time over the targets, the longest,
-and the global score (the mean of the 8 per-component medians), and where
+and the global score (the mean of the 8 per-component medians), where
 the time went, each part's median over the runs (:func:`run_parts`, from
-the report and the wall time).
+the report and the wall time), and the median CPU time of a run (user and
+system, all threads; on POSIX). A run's CPU seconds over the machine's
+cores is the least wall time any split of that work between them could
+take: the floor that the cores, not the order of the work, set.
 
 Example (0.7.0 against the working tree, default options, real-like targets)::
 
@@ -29,6 +32,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import subprocess
 import sys
 import time
@@ -73,13 +77,29 @@ sys.exit(command())
 """
 
 
-def run_tree(tree: Path, target: Path, output: Path, report: Path, options: list[str]) -> float:
-    """Wall seconds of one ``octcl invert`` process from ``tree``."""
+def run_tree(tree: Path, target: Path, output: Path, report: Path, options: list[str]) -> tuple[float, float]:
+    """(wall seconds, CPU seconds) of one ``octcl invert`` process from ``tree``; the CPU seconds (user and
+    system, all its threads) are NaN where the platform does not give a child's (``os.wait4``, POSIX only)."""
     command = [sys.executable, "-c", BOOTSTRAP, str(tree.resolve()), "invert", str(target.resolve()),
                "-o", str(output.resolve()), "--report", str(report.resolve()), "--quiet", *options]
     start = time.monotonic()
-    subprocess.run(command, check=True)
-    return time.monotonic() - start
+    process = subprocess.Popen(command)
+    if hasattr(os, "wait4"):
+        _, status, usage = os.wait4(process.pid, 0)
+        process.returncode = os.waitstatus_to_exitcode(status)
+        cpu_s = usage.ru_utime + usage.ru_stime
+    else:
+        process.wait()
+        cpu_s = float("nan")
+    wall_s = time.monotonic() - start
+    if process.returncode:
+        raise subprocess.CalledProcessError(process.returncode, command)
+    return wall_s, cpu_s
+
+
+def cores() -> int:
+    """The cores this process may run on (its affinity where the platform says, else the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 #: Stage 1's steps whose seconds :func:`run_parts` reads from the report, summed over its candidates.
@@ -120,9 +140,11 @@ def table_lines(rows: list[dict], names: list[str]) -> list[str]:
         medians = [float(np.median(walls)) for walls in by_target.values()]
         firsts = [row for row in runs if row["repeat"] == 0]
         parts = ", ".join(f"{part} {np.median([row[part] for row in runs]):.2f}" for part in PARTS)
+        cpu_s = np.median([row["cpu_s"] for row in runs])
         lines.append(f"\n{name}: median wall {np.median(medians):.2f} s over {len(medians)} targets, longest "
                      f"{max(medians):.2f} s; global score {global_score(firsts)[1]:.7f} "
-                     f"(over the targets' first runs); parts, median s over the runs: {parts}")
+                     f"(over the targets' first runs); parts, median s over the runs: {parts}; "
+                     f"median CPU {cpu_s:.2f} s a run, {cpu_s / cores():.2f} s over {cores()} cores")
     return lines
 
 
@@ -143,12 +165,12 @@ def main(argv=None) -> None:
             for name, tree in zip(names, args.trees):
                 stem = f"{target.stem}_{name.replace(':', '_')}_r{repeat}"
                 output, report_path = args.out / f"{stem}.txt", args.out / f"{stem}.report.json"
-                wall = run_tree(tree, target, output, report_path, args.options.split())
+                wall, cpu_s = run_tree(tree, target, output, report_path, args.options.split())
                 report = json.loads(report_path.read_text())
                 components = exact(render(Phantom.load(output, y_limit_um=CONTRACT_Y_LIMIT_UM)).levels)
-                rows.append({"target": target.stem, "tree": name, "repeat": repeat, "wall_s": wall,
+                rows.append({"target": target.stem, "tree": name, "repeat": repeat, "wall_s": wall, "cpu_s": cpu_s,
                              "written_s": report["seconds"]["written"], **run_parts(report, wall), **components})
-                print(f"{target.stem} {name} r{repeat}: {wall:.2f} s, written {report['seconds']['written']:.2f} s, "
+                print(f"{target.stem} {name} r{repeat}: {wall:.2f} s (CPU {cpu_s:.2f} s), written {report['seconds']['written']:.2f} s, "
                       f"score {components['mean']:.7f}", flush=True)
     with open(args.out / "versions.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))

@@ -32,10 +32,12 @@ def test_the_table_gives_each_trees_median_parts():
     components = {name: 0.9999 for name in ("msssim_Struct", "msssim_OAC", "msssim_SC", "msssim_RSC",
                                             "one_minus_lpips_Struct", "one_minus_lpips_OAC", "one_minus_lpips_SC",
                                             "one_minus_lpips_RSC")}
-    rows = [{"target": target, "tree": "0:a", "repeat": 0, "wall_s": wall, "written_s": 4.3,
+    rows = [{"target": target, "tree": "0:a", "repeat": 0, "wall_s": wall, "cpu_s": 2 * wall, "written_s": 4.3,
              **script.run_parts(report(aim_s), wall), **components, "mean": 0.9999}
             for target, aim_s, wall in (("x", 0.5, 4.4), ("y", 0.9, 4.8), ("z", 0.7, 4.6))]
     lines = script.table_lines(rows, ["0:a"])
     assert lines[2] == "| x | 4.40 (4.40) / 4.30 / 0.9999000 |"
     assert "0:a: median wall 4.60 s over 3 targets, longest 4.80 s" in lines[-1]
     assert "aim 0.70" in lines[-1] and "after the write 0.30" in lines[-1]
+    cores = script.cores()
+    assert f"median CPU 9.20 s a run, {9.2 / cores:.2f} s over {cores} cores" in lines[-1]
