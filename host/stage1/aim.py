@@ -4,10 +4,10 @@ Where the target has a level the scanner never writes (:mod:`octcl.host.stage1.c
 a phantom renders L − 1 or L + 1. Error diffusion chooses the sides so that
 the local mean of the levels is kept (:func:`octcl.host.stage1.ceiling.error_diffused`,
 the start). :class:`AimSearch` then moves sides where the exact score
-(:class:`octcl.host.stage3.loss.ExactScore`) gains, guided by the gradient of the
-loss's differentiable twins of the score's terms through the
-straight-through quantiser (:class:`octcl.host.stage3.loss.DisplayLoss` with
-:data:`SCORE_WEIGHTS`).
+(:class:`octcl.host.stage3.loss.ExactScore`) gains, guided by the gradient of
+the differentiable twin of one of the score's terms, the SC map's LPIPS,
+through the straight-through quantiser (:class:`octcl.host.stage3.loss.DisplayLoss`
+with :data:`SCORE_WEIGHTS`).
 
 A round: with g = ∂loss/∂D at the display D(a₀) of the search's first aim
 a₀ (each level at the centre of its display interval), the change of loss
@@ -32,6 +32,25 @@ Each move changed 1 − LPIPS of the SC and RSC maps by up to 3.2e−5 either
 way, their MS-SSIM by up to 5.7e−6, the Struct terms by at most 4e−7: the
 speckle-contrast maps' 8-bit levels over each window around the pixel move
 or do not, which the slope of the continuous maps does not tell.
+
+Which terms propose. Until octcl 0.8.12 the proposal's loss held every term
+the loss has of the score (MS-SSIM of the Struct and OAC maps, LPIPS of all
+four); since the speckle-contrast terms are what a move changes, the loss
+is now the SC map's LPIPS alone: its map needs the intensity only, and one
+AlexNet pass instead of four. On nine real-like targets (``scripts/bench_aim.py
+--rounds 4``: orange.png, it mirrored, it through a gamma of 0.9, plainly
+quantised skin renderings, seeds 0–5; two Zen 4 cores) the gradient took
+0.12 s (median) against 0.40 s and the first round 0.44 s against 0.85 s;
+the searches gained 1.04e−5, 1.34e−5, 0 and 7.3e−6 on orange.png, it
+mirrored, through the gamma and seed 5, against 1.08e−5, 1.38e−5, 0 and
+7.6e−6, and nothing on the other five either way. The RSC map's LPIPS
+alone, and the two together, gained as much (4.6e−6 on seed 5 with RSC
+alone; the pair 0.22 s a gradient). In a batch of 20 plainly quantised
+skins (``scripts/bench_batch.py --scans 20 --deadline --plain --modes
+local:2x1``) the scans' CPU time fell from 115.1 to 97.0 s and the
+throughput rose from 1067 to 1247 scans an hour; 5 scans' scores moved,
+by −1.6e−6 to +2.3e−6 (docs/benchmarks.md, "The aim's proposal from the SC
+map").
 
 Every round moves :data:`BATCH` pixels, and the search stops at the first
 round the exact score rejects. Until octcl 0.8.5 a rejected round halved
@@ -79,10 +98,10 @@ from .ceiling import WRITABLE
 from .levels import display_of_level
 from ..stage3.schedule import LossWeights
 
-#: The loss whose gradient proposes moves: the score's own terms, equally weighted (MS-SSIM of the
-#: Struct and OAC maps, LPIPS of all four; the loss has no MS-SSIM of SC and RSC), no pixel terms.
-SCORE_WEIGHTS = LossWeights(pixel=0.0, sc_l1=0.0, oac_l1=0.0, oac_lpips=1.0, oac_msssim=1.0, struct_msssim=1.0,
-                            struct_lpips=1.0, sc_lpips=1.0, rsc_lpips=1.0)
+#: The loss whose gradient proposes moves: LPIPS of the SC map alone, the score's term that a move changes most
+#: (module docstring, "Which terms propose").
+SCORE_WEIGHTS = LossWeights(pixel=0.0, sc_l1=0.0, oac_l1=0.0, oac_lpips=0.0, oac_msssim=0.0, struct_msssim=0.0,
+                            struct_lpips=0.0, sc_lpips=1.0, rsc_lpips=0.0)
 #: Pixels a round moves together (module docstring).
 BATCH = 16
 #: Least distance in pixels (along rows or columns) between two pixels a round moves (module docstring).
