@@ -196,11 +196,24 @@ def test_twin_accepts_batches():
             torch.testing.assert_close(together[name][index], alone[name])
 
 
+def test_twin_computes_the_maps_asked_for():
+    generator = torch.Generator().manual_seed(3)
+    scan = torch.rand(48, 40, generator=generator, dtype=torch.float64)
+    every = maps.maps_torch(scan)
+    for names in (["SC"], ["RSC"], ["OAC"], ["RSC", "SC"]):
+        some = maps.maps_torch(scan, names)
+        assert list(some) == [name for name in maps.MAP_NAMES if name in names]
+        for name in names:
+            torch.testing.assert_close(some[name], every[name], rtol=0, atol=0)
+
+
 def test_twin_rejects_other_inputs():
     with pytest.raises(ValueError):
         maps.maps_torch(torch.zeros(30, 30, dtype=torch.int64))
     with pytest.raises(ValueError):
         maps.maps_torch(torch.zeros(30))
+    with pytest.raises(ValueError, match="unknown maps.*Struct"):
+        maps.maps_torch(torch.zeros(30, 30), ["Struct", "SC"])
 
 
 # --- writing -----------------------------------------------------------------

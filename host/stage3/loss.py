@@ -92,6 +92,9 @@ from ..pipeline.target import target_scan, target_struct_for_metrics
 #: ∂P/∂D of the straight-through quantiser: P = floor(256·D)/255 on average.
 QUANTISER_SLOPE = 256.0 / 255.0
 _MSSSIM_TERMS = {"struct_msssim": "Struct", "oac_msssim": "OAC"}
+#: The processor's map each term compares (:func:`octcl.maps.maps_torch`); the other terms compare the scan.
+_TERM_MAPS = {"sc_l1": "SC", "oac_l1": "OAC", "oac_lpips": "OAC", "oac_msssim": "OAC", "sc_lpips": "SC",
+              "rsc_lpips": "RSC"}
 #: The level term's margin f, a share of each level's half-width within which a display is not pulled further
 #: towards the interval's centre (module docstring). Chosen on skin 6 in a first trial (16 s of the tissue
 #: regime's pixel phase from its decode, two cores): f = 0.6 and 0.8 put 90.3 % and 89.5 % of the pixels at their
@@ -214,9 +217,9 @@ class DisplayLoss:
 
     @staticmethod
     def _images(scan: torch.Tensor, wanted: set[str]) -> dict[str, torch.Tensor]:
-        """The scan and, if a wanted term needs them, its OAC, SC and RSC maps."""
-        needs_maps = wanted - {"pixel", "level", "struct_msssim", "struct_lpips"}
-        return {"Struct": scan, **(maps_torch(scan) if needs_maps else {})}
+        """The scan and those of its OAC, SC and RSC maps that a wanted term compares (no other is computed)."""
+        names = {_TERM_MAPS[name] for name in wanted if name in _TERM_MAPS}
+        return {"Struct": scan, **(maps_torch(scan, names) if names else {})}
 
     def _pixel_terms(self, images: dict, wanted: set[str], unquantised: torch.Tensor) -> dict[str, torch.Tensor]:
         """The wanted terms other than LPIPS: pixel, level, L1 and MS-SSIM; ``unquantised`` is P̃ (module

@@ -138,15 +138,17 @@ def test_loss_weights_skip_terms_and_refuse_bad_values(layers_path):
 
 
 def test_a_loss_builds_only_what_its_weighted_terms_compare(layers_path, uniform_levels):
-    """A loss of the pixel term alone builds no network and no maps, one without LPIPS no network; each gives its
-    terms as the published loss does."""
+    """A loss of the pixel term alone builds no network and no maps, one without LPIPS no network, one of the SC
+    map's LPIPS the SC map alone (the aim's proposal); each gives its terms as the published loss does."""
     target = read_scan(layers_path, SCAN_SHAPE)
     display = (uniform_levels + 0.3) / 256.0
     full = DisplayLoss(target, LossWeights(), dtype=torch.float64)(display).terms
-    for weights, network, maps in ((LossWeights().for_terms("pixel"), False, False),
-                                   (LossWeights().without_lpips(), False, True), (LossWeights(), True, True)):
+    sc_lpips = LossWeights(**{name: float(name == "sc_lpips") for name in dataclasses.asdict(LossWeights())})
+    for weights, network, maps in ((LossWeights().for_terms("pixel"), False, set()),
+                                   (LossWeights().without_lpips(), False, {"OAC", "SC"}),
+                                   (sc_lpips, True, {"SC"}), (LossWeights(), True, {"OAC", "SC", "RSC"})):
         loss = DisplayLoss(target, weights, dtype=torch.float64)
-        assert (loss.network is not None) == network and ("OAC" in loss.target) == maps
+        assert (loss.network is not None) == network and set(loss.target) == {"Struct", *maps}
         value = loss(display)
         assert value.terms == pytest.approx({name: full[name] for name in value.terms}, rel=1e-12)
 
