@@ -72,7 +72,24 @@ def _scale_count(shape: tuple[int, ...], requested: int = len(MSSSIM_WEIGHTS)) -
     return min(requested, int(np.floor(np.log2(shortest / WINDOW_SIZE))) + 1)
 
 
-def _ssim_and_cs(ref: np.ndarray, pred: np.ndarray, window: np.ndarray) -> tuple[float, float]:
+def _local_mean(image: np.ndarray, profile: np.ndarray) -> np.ndarray:
+    """Gaussian-weighted local means of ``image`` over the 'valid' window positions: two 1-D passes of the
+    window's normalised profile (see :func:`_ssim_and_cs`)."""
+    from scipy.ndimage import correlate1d
+
+    reach = profile.size // 2
+    rows = correlate1d(image, profile, axis=0, mode="constant")[reach:-reach]
+    return correlate1d(rows, profile, axis=1, mode="constant")[:, reach:-reach]
+
+
+def _reference_stats(ref: np.ndarray, window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's side of one scale's SSIM terms: its local means μ_x and local means of squares."""
+    profile = window.sum(axis=0)
+    return _local_mean(ref, profile), _local_mean(ref * ref, profile)
+
+
+def _ssim_and_cs(ref: np.ndarray, pred: np.ndarray, window: np.ndarray,
+                 ref_stats: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
     """Mean SSIM and mean contrast-structure term of one scale ('valid' window).
 
     sewar convolves with the 2-D window rotated by 180° (the same window:
@@ -82,21 +99,16 @@ def _ssim_and_cs(ref: np.ndarray, pred: np.ndarray, window: np.ndarray) -> tuple
     10.9 ms, where its five local means by ``convolve2d`` took 97.7 ms
     (``python scripts/bench_field_steps.py`` on two cores of an AMD EPYC),
     within 1e−12 of the official MS-SSIM values (``tests/test_msssim.py``).
+    ``ref_stats``: :func:`_reference_stats` of ``ref``, for a reference
+    compared with many images (the same arithmetic, so the same bits).
     """
-    from scipy.ndimage import correlate1d
-
     profile = window.sum(axis=0)  # the normalised 1-D Gaussian: the window is its outer product
-    reach = window.shape[0] // 2
-
-    def local_mean(image):
-        rows = correlate1d(image, profile, axis=0, mode="constant")[reach:-reach]
-        return correlate1d(rows, profile, axis=1, mode="constant")[:, reach:-reach]
-
-    mean_ref, mean_pred = local_mean(ref), local_mean(pred)
+    mean_ref, mean_of_ref_sq = _reference_stats(ref, window) if ref_stats is None else ref_stats
+    mean_pred = _local_mean(pred, profile)
     mean_ref_sq, mean_pred_sq, mean_cross = mean_ref * mean_ref, mean_pred * mean_pred, mean_ref * mean_pred
-    var_ref = local_mean(ref * ref) - mean_ref_sq
-    var_pred = local_mean(pred * pred) - mean_pred_sq
-    covariance = local_mean(ref * pred) - mean_cross
+    var_ref = mean_of_ref_sq - mean_ref_sq
+    var_pred = _local_mean(pred * pred, profile) - mean_pred_sq
+    covariance = _local_mean(ref * pred, profile) - mean_cross
 
     c1 = (K1 * DATA_RANGE) ** 2
     c2 = (K2 * DATA_RANGE) ** 2
@@ -107,13 +119,49 @@ def _ssim_and_cs(ref: np.ndarray, pred: np.ndarray, window: np.ndarray) -> tuple
     return float(np.mean(ssim_map)), float(np.mean(cs_map))
 
 
-def msssim_exact(ref_levels: np.ndarray, pred_levels: np.ndarray) -> float:
+def _downsample(image: np.ndarray) -> np.ndarray:
+    """The next scale: a 2×2 box filter (scipy's ``uniform_filter``, 'reflect') and every second row and column."""
+    from scipy.ndimage import uniform_filter
+
+    return uniform_filter(image, 2)[::2, ::2]
+
+
+def _checked_levels(name: str, image) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim != 2 or image.dtype != np.uint8:
+        raise ValueError(f"{name}: expected a 2-D uint8 image, got {image.dtype} {image.shape}")
+    return image
+
+
+class MsssimReference:
+    """A reference image's side of :func:`msssim_exact` at every scale, for a reference compared with many images.
+
+    Each scale's image and its local means and means of squares (two of the
+    five local means a scale takes) are computed once; :func:`msssim_exact`
+    with ``reference=`` gives the same bits as without: four 256×512 pairs,
+    a score's, took 0.068 s with it and 0.110 s without (orange.png's maps
+    against its error-diffused image's, median of 15, two Zen 4 cores).
+    """
+
+    def __init__(self, ref_levels: np.ndarray):
+        self.levels = _checked_levels("ref_levels", ref_levels)
+        window = _gaussian_window()
+        image, self.scales = self.levels.astype(np.float64), []
+        for _ in range(_scale_count(self.levels.shape)):
+            self.scales.append((image, _reference_stats(image, window)))
+            image = _downsample(image)
+
+
+def msssim_exact(ref_levels: np.ndarray, pred_levels: np.ndarray, reference: MsssimReference | None = None) -> float:
     """MS-SSIM of two 8-bit images as ``sewar.full_ref.msssim``, to float64 rounding.
 
     Parameters
     ----------
     ref_levels, pred_levels : (H, W) uint8 arrays
         The reference and the predicted image (grey levels 0…255).
+    reference : MsssimReference, optional
+        ``MsssimReference(ref_levels)``, computed once for many comparisons
+        (``ref_levels`` is then not read again). The result is the same.
 
     Returns
     -------
@@ -121,24 +169,21 @@ def msssim_exact(ref_levels: np.ndarray, pred_levels: np.ndarray) -> float:
         Re(Π_{j<5} cs_j^{w_j} · ssim_5^{w_5}), see the module docstring; 1 for
         identical images.
     """
-    ref_levels, pred_levels = np.asarray(ref_levels), np.asarray(pred_levels)
-    for name, image in (("ref_levels", ref_levels), ("pred_levels", pred_levels)):
-        if image.ndim != 2 or image.dtype != np.uint8:
-            raise ValueError(f"{name}: expected a 2-D uint8 image, got {image.dtype} {image.shape}")
-    if ref_levels.shape != pred_levels.shape:
-        raise ValueError(f"images differ in size: {ref_levels.shape} and {pred_levels.shape}")
-    from scipy.ndimage import uniform_filter
-
-    scales = _scale_count(ref_levels.shape)
+    pred_levels = _checked_levels("pred_levels", pred_levels)
+    if reference is None:
+        reference = MsssimReference(ref_levels)
+    if reference.levels.shape != pred_levels.shape:
+        raise ValueError(f"images differ in size: {reference.levels.shape} and {pred_levels.shape}")
+    scales = len(reference.scales)
     weights = np.array(MSSSIM_WEIGHTS[:scales])
     window = _gaussian_window()
-    ref, pred = ref_levels.astype(np.float64), pred_levels.astype(np.float64)
+    pred = pred_levels.astype(np.float64)
     ssims, css = [], []
-    for _ in range(scales):
-        ssim, cs = _ssim_and_cs(ref, pred, window)
+    for ref, ref_stats in reference.scales:
+        ssim, cs = _ssim_and_cs(ref, pred, window, ref_stats)
         ssims.append(ssim)
         css.append(cs)
-        ref, pred = (uniform_filter(image, 2)[::2, ::2] for image in (ref, pred))
+        pred = _downsample(pred)
     # numpy's complex power, as sewar, so a negative term gives the same phase.
     cs_terms = np.array(css[: scales - 1], dtype=np.float64).astype(complex) ** weights[: scales - 1]
     ssim_term = np.array(ssims[scales - 1], dtype=np.float64).astype(complex) ** weights[scales - 1]

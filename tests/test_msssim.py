@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from octcl._msssim import _gaussian_window, _ssim_and_cs, msssim_exact, msssim_torch
+from octcl._msssim import MsssimReference, _gaussian_window, _ssim_and_cs, msssim_exact, msssim_torch
 from octcl.scorer import MAP_NAMES, _msssim_input
 
 # Both twins compute the same float64 maths; they differ only in the order of
@@ -38,6 +38,21 @@ def test_gaussian_window_is_normalised_and_symmetric():
 def test_identical_images_score_one():
     levels = np.random.default_rng(0).integers(0, 256, (64, 96)).astype(np.uint8)
     assert msssim_exact(levels, levels) == pytest.approx(1.0, abs=1e-15)
+
+
+def test_a_reference_taken_once_gives_the_same_bits(official_uniform_maps):
+    """MsssimReference computed once and reused: each value to the last bit of a call without it, and a
+    reference refuses an image of another size."""
+    ref_maps, pred_maps = official_uniform_maps
+    rng = np.random.default_rng(4)
+    for name in MAP_NAMES:
+        ref = _msssim_input(ref_maps[name])
+        reference = MsssimReference(ref)
+        noisy = np.clip(ref + rng.normal(0, 6, ref.shape), 0, 255).astype(np.uint8)
+        for pred in (_msssim_input(pred_maps[name]), noisy, ref):
+            assert msssim_exact(ref, pred, reference) == msssim_exact(ref, pred), name
+    with pytest.raises(ValueError, match="differ in size"):
+        msssim_exact(ref, ref[:, :-1], reference)
 
 
 def test_exact_refuses_non_uint8_and_mismatched_sizes():

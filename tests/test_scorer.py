@@ -11,6 +11,7 @@ from octcl._io import read_png_rgb, write_grey_png
 from octcl.scorer import (
     COMPONENTS,
     MAP_NAMES,
+    ScoreReference,
     levels_for_metrics,
     _msssim_input,
     _prediction,
@@ -18,6 +19,7 @@ from octcl.scorer import (
     _scan_maps_for_metrics,
     score,
     score_directories,
+    score_grey_maps,
     score_maps,
     write_score_csv,
 )
@@ -96,6 +98,14 @@ def test_score_maps_reproduces_official_values(official_data, lpips_weights, off
     assert tuple(components) == COMPONENTS
     for name in MAP_NAMES:
         _assert_official(components, official_uniform_metrics, name)
+
+
+def test_a_reference_scored_many_times_gives_the_same_components(official_uniform_maps, lpips_weights):
+    """ScoreReference computed once: every component of every prediction to the last bit of a call without it."""
+    ref_maps, pred_maps = official_uniform_maps
+    reference = ScoreReference(ref_maps)
+    for pred in (pred_maps, ref_maps, {name: image[:, ::-1].copy() for name, image in pred_maps.items()}):
+        assert score_grey_maps(ref_maps, pred, reference) == score_grey_maps(ref_maps, pred)
 
 
 def test_score_reproduces_official_values(official_data, lpips_weights, official_uniform_metrics):

@@ -81,7 +81,7 @@ torch = import_torch()
 
 from octcl import _reference as ref
 from octcl import scorer
-from octcl._lpips import lpips_network, lpips_taps
+from octcl._lpips import lpips_network
 from octcl._msssim import msssim_torch
 from octcl.maps import map_levels, maps_torch
 
@@ -377,9 +377,10 @@ class ExactScore:
             raise ValueError(f"the target is {scan.shape[0]}x{scan.shape[1]}, the scorer takes "
                              f"{scorer.SCAN_SHAPE[0]}x{scorer.SCAN_SHAPE[1]}")
         self.target_maps = scorer.maps_for_metrics(target_struct_for_metrics(target), scan)
-        # The target's LPIPS features, once: half of each score's AlexNet passes (0.24 → 0.12 s of a score's
-        # 0.4 s on two cores, orange.png), with the same bits (octcl._lpips.lpips_distance).
-        self.target_taps = {name: lpips_taps(image) for name, image in self.target_maps.items()}
+        # The target's LPIPS features and MS-SSIM side, once: half of each score's AlexNet passes (0.24 → 0.12 s
+        # of a score's 0.4 s on two cores, orange.png) and two of each MS-SSIM scale's five local means, with the
+        # same bits (octcl.scorer.ScoreReference).
+        self.reference = scorer.ScoreReference(self.target_maps)
 
     @staticmethod
     def maps_of_levels(levels: np.ndarray) -> dict[str, np.ndarray]:
@@ -390,7 +391,7 @@ class ExactScore:
         """``msssim_<map>`` and ``one_minus_lpips_<map>`` for the four maps, and ``mean``."""
         predicted = {name: scorer.levels_for_metrics(image)
                      for name, image in self.maps_of_levels(levels).items()}
-        components = scorer.score_grey_maps(self.target_maps, predicted, self.target_taps)
+        components = scorer.score_grey_maps(self.target_maps, predicted, self.reference)
         components["mean"] = float(np.mean([components[name] for name in scorer.COMPONENTS]))
         return components
 
