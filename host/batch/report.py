@@ -9,11 +9,12 @@
   a few lines of script to sort the table by any column): the global score,
   the table, and per scan its comparison panel (target and rendering of the
   phantom, each as scan, OAC, SC and RSC) with its best score against time
-  and, in the tissue regime, the phantom's attenuation beside its target's
+  where the run scored more than once (:func:`wants_score_plot`) and, in
+  the tissue regime, the phantom's attenuation beside its target's
   (:func:`tissue_panel`).
   Panels are embedded for the :data:`REPORT_PANELS` lowest-scoring scans
   (about 0.3 MB each), the ones worth a look; every scan keeps its own
-  ``NAME.panel.png`` and ``NAME.score.png`` beside its phantom.
+  ``NAME.panel.png`` (and ``NAME.score.png``) beside its phantom.
 
 Statuses: ``inverted`` (this run), ``resumed`` (done by an earlier run with
 the same target and settings, :func:`octcl.host.batch.targets.completed_report`),
@@ -45,8 +46,9 @@ DONE = ("inverted", "resumed")
 REPORT_PANELS = 100
 #: The four maps of a panel row, as labelled.
 PANEL_MAPS = ("scan", "OAC", "SC", "RSC")
-#: The pictures of a scan's section, in order, with what each shows: the comparison panel and the score plot of
-#: every scan, the attenuation panel (:func:`tissue_panel`) of a scan inverted in the tissue regime.
+#: The pictures of a scan's section, in order, with what each shows: the comparison panel of every scan, the
+#: score plot of a scan scored more than once (:func:`wants_score_plot`), the attenuation panel
+#: (:func:`tissue_panel`) of a scan inverted in the tissue regime.
 PICTURES = {"panel": "target and rendering, scan, OAC, SC and RSC", "plot": "best exact score against time",
             "tissue": "the target's OAC map and attenuation beside the phantom's own"}
 
@@ -151,6 +153,17 @@ def best_so_far(trace: list[dict]) -> tuple[list[float], list[float]]:
             times.append(entry["time_s"])
             scores.append(best)
     return times, scores
+
+
+def wants_score_plot(trace: list[dict]) -> bool:
+    """Whether an invert report's trace has a score against time to plot: two exact evaluations or more.
+
+    A default run of the linear regime scores once, when its start is at
+    its aimed levels (stage 3 then stops, ``stop_reason`` ``ceiling``): a
+    plot of one point says nothing the table does not, and drawing it cost
+    a worker 0.11 s a scan and matplotlib's import once.
+    """
+    return len(best_so_far(trace)[0]) >= 2
 
 
 def score_plot(traces: dict[str, list[dict]], title: str, size=(6.4, 3.2)) -> bytes:
@@ -292,7 +305,7 @@ def report_html(summary: dict, images: dict[str, dict[str, bytes]]) -> str:
     parts.append("</tbody></table></div>")
     if len(images) < sum(row["status"] in DONE for row in rows.values()):
         parts.append(f"<p>Panels of the {len(images)} lowest-scoring scans; every scan's are in its "
-                     "NAME.panel.png and NAME.score.png.</p>")
+                     "NAME.panel.png (and NAME.score.png where it was scored more than once).</p>")
     for name, pictures in images.items():
         row = rows[name]
         shown_score = "score left out" if row["mean"] is None else f"{row['mean']:.5f}"

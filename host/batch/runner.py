@@ -254,7 +254,8 @@ def invert_batch(targets_dir, out_dir, time_budget_s: float = 600.0, seed: int =
         Targets (``*.png``, ``*.npy``, recursively,
         :func:`octcl.host.batch.targets.find_scans`) and the output folder,
         which mirrors their tree: per scan ``NAME.txt``, ``NAME.report.json``,
-        ``NAME.panel.png``, ``NAME.score.png``; for the batch
+        ``NAME.panel.png``, ``NAME.score.png`` (where the scan was scored
+        more than once: :func:`octcl.host.batch.report.wants_score_plot`); for the batch
         ``summary.csv``, ``summary.json``, ``report.html``
         (:mod:`octcl.host.batch.report`).
     time_budget_s, seed, **invert_options

@@ -33,7 +33,8 @@ from .report import PICTURES
 
 #: Files a batch writes for each scan, by kind: the phantom, invert's report
 #: (with the batch record), the target/rendering comparison panel, the
-#: score-against-time plot and, in the tissue regime, the attenuation panel.
+#: score-against-time plot where the run scored more than once and, in the
+#: tissue regime, the attenuation panel.
 OUTPUT_SUFFIXES = {"phantom": ".txt", "report": ".report.json", "panel": ".panel.png", "plot": ".score.png",
                    "tissue": ".tissue.png"}
 
@@ -72,11 +73,11 @@ class Scan:
                 self.output(kind).unlink(missing_ok=True)
 
     def read_pictures(self) -> dict[str, bytes] | None:
-        """``{kind: PNG}`` of the pictures on disk; None where the panel or the plot, which every scan has, is
-        missing or unreadable."""
+        """``{kind: PNG}`` of the pictures on disk; None where the panel, which every scan has, is missing or
+        unreadable."""
         try:
             return {kind: self.output(kind).read_bytes() for kind in PICTURES
-                    if kind in ("panel", "plot") or self.output(kind).exists()}
+                    if kind == "panel" or self.output(kind).exists()}
         except OSError:
             return None
 

@@ -75,7 +75,7 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     from ..pipeline.invert import TimeBudgetExceeded, invert
     from ..pipeline.target import decode_target
 
-    from .report import comparison_panel, score_plot, tissue_panel
+    from .report import comparison_panel, score_plot, tissue_panel, wants_score_plot
 
     torch = import_torch()
     started, cpu_started = time.monotonic(), time.process_time()
@@ -103,8 +103,9 @@ def invert_scan(name: str, data: bytes, time_budget_s: float, seed: int, options
     title = f"{name}: score {score} after {result.seconds['total']:.0f} s"
     # The written phantom's rendering and attenuation map are invert's own (InvertResult.levels,
     # .attenuation_per_mm): rendering the file again took a render, and the map a transmission map (about 1 s).
-    pictures = {"panel": comparison_panel(target, result.levels, title),
-                "plot": score_plot({name: report["trace"]}, name)}
+    pictures = {"panel": comparison_panel(target, result.levels, title)}
+    if wants_score_plot(report["trace"]):
+        pictures["plot"] = score_plot({name: report["trace"]}, name)
     if attenuation is not None:
         pictures["tissue"] = tissue_panel(target, attenuation, f"{name}: attenuation")
     return {"name": name, "phantom": phantom, "report": report, **pictures,

@@ -12,7 +12,7 @@ from PIL import Image
 
 from octcl.host.batch import report
 from octcl.host.batch.report import (COLUMNS, PICTURES, best_so_far, comparison_panel, read_summary_csv, score_plot,
-                                     tissue_panel, write_reports)
+                                     tissue_panel, wants_score_plot, write_reports)
 from octcl.host.stage1.levels import target_magnitude
 from octcl.phantom import Phantom
 from octcl.render import render
@@ -161,3 +161,10 @@ def test_best_so_far_is_what_the_file_holds():
     trace = [{"time_s": 1.0, "score": None}, {"time_s": 2.0, "score": 0.9}, {"time_s": 3.0, "score": 0.8},
              {"time_s": 4.0, "score": 0.95}]
     assert best_so_far(trace) == ([2.0, 3.0, 4.0], [0.9, 0.9, 0.95])
+
+
+def test_a_run_scored_once_has_no_score_plot():
+    """A default linear run's trace (the field, unscored, then its start's one score) has nothing to plot."""
+    once = [{"time_s": 2.1, "stage": "field", "score": None}, {"time_s": 2.4, "stage": "initial", "score": 0.9999}]
+    assert not wants_score_plot(once)
+    assert wants_score_plot(once + [{"time_s": 3.0, "stage": "refine", "score": 0.99991}])

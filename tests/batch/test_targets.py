@@ -36,8 +36,8 @@ def test_targets_are_found_recursively_and_outputs_mirror_the_tree(tmp_path):
 
 
 def test_a_scans_pictures_are_this_runs_only(tmp_path):
-    """The pictures written are read back; a later run without an attenuation panel (another regime) leaves
-    none of the earlier run's; a scan missing its panel has no pictures to show."""
+    """The pictures written are read back; a later run without an attenuation panel (another regime) or a score
+    plot (scored once) leaves none of the earlier run's; a scan missing its panel has no pictures to show."""
     scan = find_scans(touch(tmp_path / "t/a.png").parent, tmp_path / "out")[0]
     scan.output("panel").parent.mkdir(parents=True)
     tissue_run = {"panel": b"panel 1", "plot": b"plot 1", "tissue": b"tissue 1"}
@@ -45,6 +45,8 @@ def test_a_scans_pictures_are_this_runs_only(tmp_path):
     assert scan.read_pictures() == tissue_run
     scan.write_pictures({"panel": b"panel 2", "plot": b"plot 2"})
     assert scan.read_pictures() == {"panel": b"panel 2", "plot": b"plot 2"} and not scan.output("tissue").exists()
+    scan.write_pictures({"panel": b"panel 3"})
+    assert scan.read_pictures() == {"panel": b"panel 3"} and not scan.output("plot").exists()
     scan.output("panel").unlink()
     assert scan.read_pictures() is None
 

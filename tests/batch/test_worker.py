@@ -4,7 +4,7 @@ import io
 
 import numpy as np
 
-from octcl.host.batch.report import comparison_panel, tissue_panel
+from octcl.host.batch.report import comparison_panel, tissue_panel, wants_score_plot
 from octcl.host.batch.worker import invert_scan
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
 from octcl.render import render
@@ -26,3 +26,13 @@ def test_a_tissue_scans_pictures_are_those_of_the_phantom_it_sends_back(tmp_path
     title = f"skin.npy: score {score:.5f} after {scan['report']['seconds']['total']:.0f} s"
     assert scan["panel"] == comparison_panel(levels, render(written).levels, title)
     assert scan["tissue"] == tissue_panel(levels, attenuation_map(transmission_map(written)), "skin.npy: attenuation")
+    assert "plot" in scan and wants_score_plot(scan["report"]["trace"])
+
+
+def test_a_scan_scored_once_sends_no_score_plot():
+    """A linear run whose start renders the target's levels stops at its one score: a panel and no plot."""
+    data = io.BytesIO()
+    np.save(data, render(Phantom.skin(1)).levels)
+    scan = invert_scan("skin.npy", data.getvalue(), 600.0, 0, {})
+    assert "error" not in scan, scan.get("error")
+    assert scan["report"]["stop_reason"] == "ceiling" and "panel" in scan and "plot" not in scan
