@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+
 import pytest
 
 from conftest import load_script
@@ -41,3 +44,26 @@ def test_the_table_gives_each_trees_median_parts():
     assert "aim 0.70" in lines[-1] and "after the write 0.30" in lines[-1]
     cores = script.cores()
     assert f"median CPU 9.20 s a run, {9.2 / cores:.2f} s over {cores} cores" in lines[-1]
+
+
+def fake_tree(folder, body: str):
+    """A source tree whose ``octcl.cli.command`` runs ``body`` (the bootstrap imports the tree's own octcl)."""
+    (folder / "octcl").mkdir(parents=True)
+    (folder / "octcl" / "__init__.py").write_text("")
+    (folder / "octcl" / "cli.py").write_text(f"def command():\n{body}\n")
+    return folder
+
+
+def test_a_runs_cpu_time_is_its_childs(tmp_path):
+    """run_tree gives the child's wall and CPU seconds; a child that spins 0.3 s shows at least that much CPU."""
+    script = load_script("bench_versions")
+    spin = "    import time\n    end = time.process_time() + 0.3\n    while time.process_time() < end:\n        pass\n    return 0"
+    tree = fake_tree(tmp_path / "spin", spin)
+    wall_s, cpu_s = script.run_tree(tree, tmp_path / "t.png", tmp_path / "o.txt", tmp_path / "r.json", [])
+    if hasattr(os, "wait4"):
+        assert 0.3 <= cpu_s <= wall_s + 0.5
+    else:
+        assert cpu_s != cpu_s  # NaN where the platform gives no child's CPU time
+    failing = fake_tree(tmp_path / "fail", "    return 3")
+    with pytest.raises(subprocess.CalledProcessError):
+        script.run_tree(failing, tmp_path / "t.png", tmp_path / "o.txt", tmp_path / "r.json", [])
