@@ -22,9 +22,12 @@ mode's thread count per scan (all cores for ``sequential``, T otherwise):
 - ``stock:WxT``: the same with Dask's defaults.
 
 Per mode: scans per hour (scans / wall time of the whole batch), CPU use
-(CPU seconds of the inversions, all threads, over wall time × cores), the
-peak resident memory of each worker process (of the process, for
-sequential), and the global score (mean of the 8 per-component medians).
+(CPU seconds of the inversions, all threads, over wall time × cores), what
+bounds the throughput (:func:`cpu_figures`: the scans' CPU seconds, the
+scans an hour they would allow with every core busy throughout, and each
+worker's seconds outside its scans), the peak resident memory of each
+worker process (of the process, for sequential), and the global score
+(mean of the 8 per-component medians).
 Results go to ``--out``: ``bench_batch.json``, ``bench_batch.csv`` and
 ``bench_batch.png`` (scans per hour and CPU use per mode).
 
@@ -159,6 +162,26 @@ def run_mode(mode: str, targets: Path, out: Path, budget: float, seed: int, sche
     return {"rows": summary["scans"], "wall_s": wall}
 
 
+def cpu_figures(rows: dict, wall_s: float, cores: int) -> dict:
+    """What bounds a batch's throughput, from its rows (``summary["scans"]``: each scan's ``seconds``, ``cpu_s``
+    and ``worker``):
+
+    - ``cpu_s_per_scan``: the scans' mean CPU seconds (all threads);
+    - ``cpu_bound_scans_per_hour``: cores·3600/that, the most any schedule of this work could reach on these
+      cores, every core busy from the start to the end;
+    - ``outside_scans_s``: per worker, the batch's wall time less the seconds of its own scans (the cluster's
+      start, the first import in the worker, the last scans' tail, the close), their mean over the workers;
+    - ``cpu_use_pct``: the scans' CPU seconds over wall time × cores.
+    """
+    cpu = [row["cpu_s"] for row in rows.values()]
+    inside = {}
+    for row in rows.values():
+        inside[row["worker"]] = inside.get(row["worker"], 0.0) + row["seconds"]
+    return {"cpu_s_per_scan": sum(cpu) / len(cpu), "cpu_bound_scans_per_hour": cores * 3600 * len(cpu) / sum(cpu),
+            "outside_scans_s": sum(wall_s - seconds for seconds in inside.values()) / len(inside),
+            "cpu_use_pct": 100 * sum(cpu) / (wall_s * cores)}
+
+
 def measure(mode: str, result: dict, cores: int) -> dict:
     rows = result["rows"]
     summary = summarise(rows, {}, None, result["wall_s"])
@@ -166,8 +189,7 @@ def measure(mode: str, result: dict, cores: int) -> dict:
     for row in rows.values():
         peaks[row["worker"]] = max(peaks.get(row["worker"], 0.0), row["peak_memory_mib"])
     return {"mode": mode, "scans": len(rows), "wall_s": result["wall_s"],
-            "scans_per_hour": 3600 * len(rows) / result["wall_s"],
-            "cpu_use_pct": 100 * sum(row["cpu_s"] for row in rows.values()) / (result["wall_s"] * cores),
+            "scans_per_hour": 3600 * len(rows) / result["wall_s"], **cpu_figures(rows, result["wall_s"], cores),
             "peak_memory_mib_per_worker": max(peaks.values()), "median_seconds_per_scan": summary["median_seconds"],
             "score": summary["score"], "medians": summary["medians"],
             "scan_scores": {name: row["mean"] for name, row in rows.items()}}
@@ -233,7 +255,9 @@ def main(argv=None) -> int:
         results.append(result)
         print(f"{mode}: {result['scans_per_hour']:.1f} scans/h ({result['wall_s']:.0f} s), CPU "
               f"{result['cpu_use_pct']:.0f} %, peak {result['peak_memory_mib_per_worker']:.0f} MiB/worker, "
-              f"score {result['score']:.6f} (load average before: {load:.1f})", flush=True)
+              f"score {result['score']:.6f} (load average before: {load:.1f}); "
+              f"{result['cpu_s_per_scan']:.2f} CPU s a scan, at most {result['cpu_bound_scans_per_hour']:.0f} "
+              f"scans/h on {cores} cores; {result['outside_scans_s']:.1f} s a worker outside its scans", flush=True)
     baseline = results[0]["score"]
     for result in results:
         result["score_difference"] = result["score"] - baseline
@@ -243,7 +267,8 @@ def main(argv=None) -> int:
             "time_budget_s": args.time_budget, "seed": args.seed}
     with atomic_write(args.out / "bench_batch.json", "w") as handle:
         json.dump({**meta, "results": results}, handle, indent=1)
-    columns = ["mode", "scans", "wall_s", "scans_per_hour", "cpu_use_pct", "peak_memory_mib_per_worker",
+    columns = ["mode", "scans", "wall_s", "scans_per_hour", "cpu_use_pct", "cpu_s_per_scan", "cpu_bound_scans_per_hour",
+               "outside_scans_s", "peak_memory_mib_per_worker",
                "median_seconds_per_scan", "score", "score_difference", "load_average_before"]
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
