@@ -16,7 +16,7 @@ from .phantom import Phantom
 from .render import render
 
 #: octcl's version, the one place it is written (setup.cfg reads it: ``version = attr: octcl.__version__``).
-__version__ = "0.8.13"
+__version__ = "0.8.14"
 __all__ = ["Phantom", "ScannerConfig", "render", "score", "invert", "__version__"]
 
 

@@ -607,7 +607,7 @@ def _add_invert_command(command) -> None:
                    help="the linear regime's stage 1 as named steps, in order, each NAME:ITERATIONS: display "
                         "(Adam on the display), project (projections onto the levels), hinge (L-BFGS onto the "
                         "levels), aim (rounds choosing the sides of unwritable levels for the score); the "
-                        "default's first candidate is display:150,project:100,hinge:200,aim:4")
+                        "default's first candidate is display:150,project:50,hinge:200,aim:4")
     p.add_argument("--backend", choices=("opencl", "numpy"), default="opencl",
                    help="stage 1 as OpenCL kernels on the device that renders (default) or the NumPy reference "
                         "on the host")

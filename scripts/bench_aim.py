@@ -34,7 +34,8 @@ from octcl.host.stage1.aim import AimSearch
 from octcl.host.stage1.backend import make_backend
 from octcl.host.stage1.ceiling import WRITABLE, aimed_levels
 from octcl.host.stage1.levels import display_of_level, target_levels
-from octcl.host.stage1.solve import AIM_HINGE_ITERATIONS, FieldSolve, display, hinge, project
+from octcl.host.stage1.solve import AIM_HINGE_ITERATIONS, FieldSolve, default_schedules
+from octcl.host.stage1.start import DISPLAY_ITERATIONS
 
 
 def timed(function, *args):
@@ -66,7 +67,7 @@ def bench(path: Path, rounds: int, first: bool, singles: int = 0) -> None:
     levels = target_levels(target, DEFAULT_CONFIG)
     aim = aimed_levels(levels)
     solve = FieldSolve(levels, aim, make_backend("opencl", DEFAULT_CONFIG))
-    _, seconds = timed(solve.run, display(150) + project(100) + hinge(200))
+    _, seconds = timed(solve.run, default_schedules(DISPLAY_ITERATIONS, aim_rounds=0)[0])
     print(f"\n{path.name}: unwritable pixels {np.mean(~WRITABLE[levels]):.3%}, stage 1 to its aim {seconds:.2f} s, "
           f"at its aim {solve.best_identical:.4%}")
     rows = []

@@ -1,7 +1,8 @@
 """Benchmark the host path's stage-1 steps, one at a time, in one process: the costs a device loop must beat.
 
 On one target (default the official Uniform A), after the default's display
-fit and projections (``display:150,project:100``):
+fit and projections (:data:`~octcl.host.stage1.start.DISPLAY_ITERATIONS` and
+:data:`~octcl.host.stage1.solve.START_PROJECTIONS` steps):
 
 - a display-fit step (:func:`octcl.host.stage1.display_loss.display_loss` and an Adam
   step), float32 and float64, over 50 steps of :func:`fit_field`;
@@ -39,7 +40,8 @@ from octcl.host.stage1.display import fit_field
 from octcl.host.stage1.levels import target_levels
 from octcl.host.stage1.operator import FieldOperator
 from octcl.host.stage1.backend import NumpyBackend, OpenCLBackend
-from octcl.host.stage1.solve import FieldSolve, display, project
+from octcl.host.stage1.solve import START_PROJECTIONS, FieldSolve, display, project
+from octcl.host.stage1.start import DISPLAY_ITERATIONS
 from octcl.host.stage1 import hinge, levels as stage1_levels, projections as linear
 from octcl.render import Rendering
 
@@ -134,7 +136,8 @@ def main(argv=None) -> int:
     rows.append(("projection step, OpenCL float32", f"{1e3 * seconds / 50:.1f} ms",
                  f"host complex128 / kernels: {host_projection / seconds:.1f}×"))
 
-    start = FieldSolve(levels, aim, NumpyBackend(threads=args.threads)).run(display(150) + project(100))
+    start = FieldSolve(levels, aim, NumpyBackend(threads=args.threads)).run(
+        display(DISPLAY_ITERATIONS) + project(START_PROJECTIONS))
     seconds, fit = median_seconds(lambda: hinge.fit_levels(start.field, aim, iterations=200, backend=device), args.repeats)
     rows.append(("hinge fit, OpenCL float32 L-BFGS, 10 pairs", f"{seconds:.2f} s",
                  f"{fit.iterations} iterations, {100 * fit.identical:.3f} % at aim"))

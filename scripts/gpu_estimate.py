@@ -32,7 +32,9 @@ and the host: the layout (depth order on a CPU device, bins, uploads:
 measured on this machine, printed below) and PCIe transfers (z, E in;
 A-scans and gradients out).
 
-Stage 1's field solve (the default's ``display:150,project:100,hinge:H``)
+Stage 1's field solve (the default's display fit and projections,
+:data:`~octcl.host.stage1.start.DISPLAY_ITERATIONS` and
+:data:`~octcl.host.stage1.solve.START_PROJECTIONS` steps, then ``hinge:H``)
 is counted from its kernels' passes over the (Nz, Nx) field
 (:func:`field_solve_work`): per display-fit step, projection step and
 hinge iteration the bytes each kernel reads and writes once (the stencils'
@@ -69,6 +71,8 @@ import numpy as np
 
 from octcl.device.scanner import KernelSettings, ScannerKernels, contribution_ranges
 from octcl.phantom import Phantom
+from octcl.host.stage1.solve import START_PROJECTIONS
+from octcl.host.stage1.start import DISPLAY_ITERATIONS
 
 GPUS = {
     "NVIDIA H100 SXM5": {"bandwidth": 3.35e12, "flops": 66.9e12, "special": 132 * 16 * 1.98e9, "pcie": 25e9,
@@ -197,12 +201,14 @@ def main() -> None:
             print(f"  {gpu_name}: " + "; ".join(cells))
     work = field_solve_work()
     host_s = host_share_of_stage_1_s()
-    print(f"stage 1, display:150,project:100,hinge:{HINGE_ITERATIONS} on the device (float32); the host's share "
+    print(f"stage 1, display:{DISPLAY_ITERATIONS},project:{START_PROJECTIONS},hinge:{HINGE_ITERATIONS} on the "
+          f"device (float32); the host's share "
           f"at aim after each of the 4 steps and the level check every 10 hinge iterations take "
           f"{1000 * host_s:.1f} ms each on this machine")
     for gpu_name, gpu in GPUS.items():
         steps = {name: field_solve_seconds(counted_work, gpu) for name, counted_work in work.items()}
-        total = 150 * steps["display"] + 100 * steps["project"] + HINGE_ITERATIONS * steps["hinge"]
+        total = (DISPLAY_ITERATIONS * steps["display"] + START_PROJECTIONS * steps["project"]
+                 + HINGE_ITERATIONS * steps["hinge"])
         host = (4 + HINGE_ITERATIONS / 10) * host_s
         print(f"  {gpu_name}: display step {1e3 * steps['display']:.3f} ms, projection step "
               f"{1e3 * steps['project']:.3f} ms, hinge iteration {1e3 * steps['hinge']:.3f} ms; "

@@ -33,8 +33,10 @@ From the regularised inverse (``python scripts/bench_linear.py --skin 3``,
 docs/benchmarks.md; the 8-component score of the field's own 8-bit
 rendering) the score changes by up to 9.7e−4 between 100 and 300
 iterations (:data:`RETRIEVAL_ITERATIONS`) and by at most 1.6e−5 after; from
-a display fit (:func:`~octcl.host.stage1.start.linear_start`) by at most 2e−6 between 100
-(:data:`~octcl.host.stage1.start.START_PROJECTIONS`) and 600. A projection costs about 8 ms on two cores.
+a display fit (:func:`~octcl.host.stage1.start.linear_start`) by at most 2e−6 between 100 and 600.
+Within the default's stage 1 a hinge fit follows them and puts every pixel at its
+level; there :data:`~octcl.host.stage1.solve.START_PROJECTIONS` is chosen by the
+time to get there. A projection costs about 8 ms on two cores.
 
 References
 ----------

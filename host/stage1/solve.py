@@ -3,8 +3,8 @@
 As in PyNX's operators (Favre-Nicolin et al., "PyNX: high-performance
 computing toolkit for coherent X-ray imaging based on operators",
 J. Appl. Cryst. 53, 2020), the algorithm is a value a user composes, not
-code: ``display(150) + project(100) + hinge(200)`` is the default, and
-``FieldSchedule.parse("display:150,project:100,hinge:200")`` the same from
+code: ``display(150) + project(50) + hinge(200)`` is the default, and
+``FieldSchedule.parse("display:150,project:50,hinge:200")`` the same from
 ``octcl invert --field-schedule``. One :class:`FieldSolve` carries a run's
 state (the field, the aimed levels, the backend its steps run on) and its history; one
 step (:data:`STEPS`) is a function apart from the loop that runs them.
@@ -76,8 +76,17 @@ AIM_REACH_S = 0.5
 #: first display fit's steps. A third at 2× won on one scan of seven by 8e−6 and cost
 #: about 5 s (:func:`~octcl.host.stage1.start.linear_start`).
 START_LENGTHS = (1.0, 0.5)
-#: Projection steps after each display fit in :func:`~octcl.host.stage1.start.linear_start`.
-START_PROJECTIONS = 100
+#: Projection steps after each display fit in :func:`~octcl.host.stage1.start.linear_start`. Once every pixel is
+#: at its aimed level the score no longer depends on how the field got there, so the count is chosen by the time
+#: stage 1 takes to get there. On 43 real-like targets (orange.png, it mirrored and through a gamma of 0.9, plainly
+#: quantised skin renderings, seeds 0–39; ``python scripts/bench_field_schedules.py``, two Zen 4 cores)
+#: ``display:150,project:50,hinge:200`` took 57.2 s in all (median 1.20 s, longest 2.24 s) against 65.0 s
+#: (1.43 s, 2.35 s) with 100 projections, every pixel at its aim on all 43 either way; shorter display fits or
+#: 70 projections after 120 display steps took 52–53 s but left 1–2 targets off their aim, which sends a run to
+#: its second candidate. The projections' second 50 steps raised their share at the aim on 25 targets and lowered
+#: it on 18, and saved the hinge fit 7 of its 47 iterations on average (median 30 either way): 0.4 s of
+#: projections for 0.07 s of hinge (docs/benchmarks.md, "Stage 1's projections").
+START_PROJECTIONS = 50
 
 
 @dataclass(frozen=True)

@@ -94,7 +94,7 @@ def linear_start(target, score, config: ScannerConfig = DEFAULT_CONFIG, schedule
     by a :class:`~octcl.host.stage1.solve.FieldSolve`; by default
     :func:`~octcl.host.stage1.solve.default_schedules` of
     :data:`DISPLAY_ITERATIONS` display steps (``octcl invert``'s):
-    ``display:150,project:100,hinge:200,aim:4``, then the same with 75. Once a
+    ``display:150,project:50,hinge:200,aim:4``, then the same with 75. Once a
     candidate renders every pixel at its aimed level the others are left
     out; of several, the one whose field renders with the highest
     ``score`` is kept. The display fit puts the dark pixels near their

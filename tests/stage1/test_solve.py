@@ -32,9 +32,9 @@ def test_a_schedule_is_composed_parsed_and_written_back():
     assert schedule.iterations == 450 and schedule.display_iterations == 150
     assert (display(10) + (project(5) + hinge(3))).steps == (display(10), project(5), hinge(3))
     first, second = default_schedules(150)
-    assert str(first) == "display:150,project:100,hinge:200,aim:4" and second.display_iterations == 75
+    assert str(first) == "display:150,project:50,hinge:200,aim:4" and second.display_iterations == 75
     assert [str(schedule) for schedule in default_schedules(150, aim_rounds=0)] == [
-        "display:150,project:100,hinge:200", "display:75,project:100,hinge:200"]  # the tissue regime's
+        "display:150,project:50,hinge:200", "display:75,project:50,hinge:200"]  # the tissue regime's
 
 
 @pytest.mark.parametrize("text, message", [("display", "NAME:ITERATIONS"), ("raar:20", "unknown stage-1 step"),
