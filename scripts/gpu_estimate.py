@@ -128,9 +128,11 @@ def field_solve_seconds(work: dict, gpu: dict) -> float:
             + work.get("reads", 0) * READ_S)
 
 
-def host_share_of_stage_1_s() -> float:
-    """Seconds of the host's float64 work per stage-1 step on this machine: the share at aim after a step
-    (one FieldOperator.apply and the rendering's levels), the dominant host work between device steps."""
+def host_share_of_stage_1_s() -> tuple[float, float]:
+    """Seconds of the host's work between stage 1's device steps on this machine: the float64 share at aim
+    after a step and the hinge fit's last level check (one FieldOperator.apply and the rendering's levels),
+    and the levels of the device's A-scans that screen every other level check
+    (:meth:`octcl.host.stage1.backend.OpenCLBackend.may_render`, its read from the device apart)."""
     from octcl.host.stage1.operator import FieldOperator
     from octcl.render import Rendering
 
@@ -139,7 +141,12 @@ def host_share_of_stage_1_s() -> float:
     start = time.perf_counter()
     for _ in range(5):
         Rendering.from_a_scans(operator.apply(field))
-    return (time.perf_counter() - start) / 5
+    exact_s = (time.perf_counter() - start) / 5
+    a_scans = operator.apply(field)
+    start = time.perf_counter()
+    for _ in range(5):
+        Rendering.from_a_scans(a_scans)
+    return exact_s, (time.perf_counter() - start) / 5
 
 
 def count(phantom: Phantom, kernels: ScannerKernels) -> dict:
@@ -200,16 +207,17 @@ def main() -> None:
                 cells.append(f"{stage} {1000 * seconds:.2f} ms ({bound}-bound) + PCIe {1000 * transfer:.2f} ms")
             print(f"  {gpu_name}: " + "; ".join(cells))
     work = field_solve_work()
-    host_s = host_share_of_stage_1_s()
+    exact_s, screen_s = host_share_of_stage_1_s()
+    checks = HINGE_ITERATIONS // 10
     print(f"stage 1, display:{DISPLAY_ITERATIONS},project:{START_PROJECTIONS},hinge:{HINGE_ITERATIONS} on the "
-          f"device (float32); the host's share "
-          f"at aim after each of the 4 steps and the level check every 10 hinge iterations take "
-          f"{1000 * host_s:.1f} ms each on this machine")
+          f"device (float32); on this machine the host's share at aim after each of the 4 steps and the hinge's "
+          f"last level check take {1000 * exact_s:.1f} ms each, its {checks - 1} screened checks before "
+          f"{1000 * screen_s:.1f} ms each")
     for gpu_name, gpu in GPUS.items():
         steps = {name: field_solve_seconds(counted_work, gpu) for name, counted_work in work.items()}
         total = (DISPLAY_ITERATIONS * steps["display"] + START_PROJECTIONS * steps["project"]
                  + HINGE_ITERATIONS * steps["hinge"])
-        host = (4 + HINGE_ITERATIONS / 10) * host_s
+        host = 5 * exact_s + (checks - 1) * screen_s
         print(f"  {gpu_name}: display step {1e3 * steps['display']:.3f} ms, projection step "
               f"{1e3 * steps['project']:.3f} ms, hinge iteration {1e3 * steps['hinge']:.3f} ms; "
               f"stage 1 {1e3 * total:.0f} ms on the device + {1e3 * host:.0f} ms on the host")

@@ -84,7 +84,7 @@ def fit_levels(field: np.ndarray, aim: np.ndarray, config: ScannerConfig = DEFAU
     start = time.perf_counter()
     backend = NumpyBackend(config, workers) if backend is None else backend
     aim, field, lower, upper = hinge_start(field, aim, iterations, margin, backend.operator)
-    stop = LevelStop(aim, backend.levels_of, start, time_budget_s)
+    stop = LevelStop(aim, backend.levels_of, start, time_budget_s, backend.may_render)
     found = backend.hinge_steps(field, lower, upper, iterations, LEVEL_FIT_MEMORY, stop)
     return normalised_fit(backend.operator, found, aim, stop.taken, time.perf_counter() - start, stop.clock_steps)
 
@@ -104,12 +104,15 @@ class LevelStop:
     """The hinge fit's L-BFGS callback: counts the iterations, and ends the fit past its time budget or once
     every pixel renders at its aimed level, checked every :data:`LEVEL_CHECK_EVERY` iterations.
 
-    ``levels_of(field)`` gives a field's 8-bit rendering (on the host, or from a device's field).
-    ``clock_steps`` is 1 where the budget ended the fit.
+    ``levels_of(field)`` gives a field's 8-bit rendering (on the host, or from a device's field): the check.
+    ``may_render(field, aim)``, where given, screens it: where a cheaper rendering of the field differs from
+    the aim (a device's float32 one, :meth:`octcl.host.stage1.backend.OpenCLBackend.may_render`) it is False,
+    and the exact check is left out. ``clock_steps`` is 1 where the budget ended the fit.
     """
 
-    def __init__(self, aim: np.ndarray, levels_of, start: float, time_budget_s: float | None):
+    def __init__(self, aim: np.ndarray, levels_of, start: float, time_budget_s: float | None, may_render=None):
         self.aim, self.levels_of, self.start, self.time_budget_s = aim, levels_of, start, time_budget_s
+        self.may_render = may_render
         self.taken = self.clock_steps = 0
 
     def __call__(self, field_now) -> None:
@@ -117,6 +120,9 @@ class LevelStop:
         if self.time_budget_s is not None and time.perf_counter() - self.start > self.time_budget_s:
             self.clock_steps = 1
             raise StopIteration
-        if self.taken % LEVEL_CHECK_EVERY == 0 and np.array_equal(self.levels_of(field_now), self.aim):
+        if self.taken % LEVEL_CHECK_EVERY or (self.may_render is not None
+                                              and not self.may_render(field_now, self.aim)):
+            return
+        if np.array_equal(self.levels_of(field_now), self.aim):
             raise StopIteration
 

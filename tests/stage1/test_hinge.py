@@ -1,11 +1,13 @@
 """The hinge fit (host/stage1/hinge.py): L-BFGS until every pixel renders at its aimed level, on the NumPy backend."""
 
 
+import time
+
 import numpy as np
 import pytest
 
 from octcl.host.stage1.operator import FieldOperator
-from octcl.host.stage1.hinge import LEVEL_CHECK_EVERY, LEVEL_FIT_ITERATIONS, fit_levels
+from octcl.host.stage1.hinge import LEVEL_CHECK_EVERY, LEVEL_FIT_ITERATIONS, LevelStop, fit_levels
 from octcl.render import Rendering
 from conftest import random_field, SMALL_SCANNER as SMALL
 
@@ -33,3 +35,20 @@ def test_fit_levels_puts_every_pixel_at_its_level_and_the_brightest_at_one():
     assert cut.clock_steps == 1 and cut.iterations == 1
     with pytest.raises(ValueError, match="iterations"):
         fit_levels(start, levels, SMALL, iterations=0)
+
+
+def test_the_level_check_asks_the_exact_levels_only_where_its_screen_lets_it():
+    """A check whose screen says no leaves the exact levels out; one it lets through ends the fit only where
+    the exact levels are the aim."""
+    aim, off = np.zeros((2, 3), np.uint8), np.ones((2, 3), np.uint8)
+    asked, screened = [], iter([False, True, True])
+    stop = LevelStop(aim, lambda field: asked.append(field) or field, time.perf_counter(), None,
+                     lambda field, aimed: next(screened))
+    for _ in range(2 * LEVEL_CHECK_EVERY):
+        stop(off)  # the screen turns the first check away; the exact levels turn the second
+    assert len(asked) == 1 and stop.taken == 2 * LEVEL_CHECK_EVERY
+    for _ in range(LEVEL_CHECK_EVERY - 1):
+        stop(aim)
+    with pytest.raises(StopIteration):
+        stop(aim)
+    assert len(asked) == 2 and stop.taken == 3 * LEVEL_CHECK_EVERY

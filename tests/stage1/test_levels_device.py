@@ -357,10 +357,17 @@ def test_device_hinge_fit_puts_every_pixel_at_its_aim_as_the_host_one(layers, ho
     measured for each), the device's within a level check of the host's."""
     levels, aim, host = layers
     kernels = FieldKernels(device=implementation_device("intel"), double=double)
-    ours = fit_levels(host.field, aim, backend=OpenCLBackend(kernels=kernels))
+    backend = OpenCLBackend(kernels=kernels)
+    ours = fit_levels(host.field, aim, backend=backend)
     assert ours.identical == host_hinge.identical == 1.0
     assert abs(ours.iterations - host_hinge.iterations) <= hinge.LEVEL_CHECK_EVERY
     assert ours.clock_steps == 0 and ours.iterations % hinge.LEVEL_CHECK_EVERY == 0
     a_scans = kernels.twin.apply(ours.field)
     assert np.abs(a_scans).max() == pytest.approx(1.0)
     assert np.array_equal(Rendering.from_a_scans(a_scans).levels, aim)
+    # The level check's screen, the kernels' own rendering, passes the field at its aim and turns away an aim
+    # one pixel off it.
+    on_device = kernels.to_device(ours.field)
+    moved = aim.copy()
+    moved[100, 200] = moved[100, 200] + 1 if moved[100, 200] < 255 else 254
+    assert backend.may_render(on_device, aim) and not backend.may_render(on_device, moved)
