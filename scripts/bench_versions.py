@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from octcl.host.threads import available_cores
 from octcl.host.pipeline.target import read_target
 from octcl.host.stage3.loss import ExactScore
 from octcl.phantom import CONTRACT_Y_LIMIT_UM, Phantom
@@ -97,11 +98,6 @@ def run_tree(tree: Path, target: Path, output: Path, report: Path, options: list
     return wall_s, cpu_s
 
 
-def cores() -> int:
-    """The cores this process may run on (its affinity where the platform says, else the machine's count)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 #: Stage 1's steps whose seconds :func:`run_parts` reads from the report, summed over its candidates.
 FIELD_STEPS = ("display", "project", "hinge", "aim")
 #: :func:`run_parts`'s parts, in a run's order.
@@ -140,11 +136,11 @@ def table_lines(rows: list[dict], names: list[str]) -> list[str]:
         medians = [float(np.median(walls)) for walls in by_target.values()]
         firsts = [row for row in runs if row["repeat"] == 0]
         parts = ", ".join(f"{part} {np.median([row[part] for row in runs]):.2f}" for part in PARTS)
-        cpu_s = np.median([row["cpu_s"] for row in runs])
+        cpu_s, cores = np.median([row["cpu_s"] for row in runs]), available_cores()
         lines.append(f"\n{name}: median wall {np.median(medians):.2f} s over {len(medians)} targets, longest "
                      f"{max(medians):.2f} s; global score {global_score(firsts)[1]:.7f} "
                      f"(over the targets' first runs); parts, median s over the runs: {parts}; "
-                     f"median CPU {cpu_s:.2f} s a run, {cpu_s / cores():.2f} s over {cores()} cores")
+                     f"median CPU {cpu_s:.2f} s a run, {cpu_s / cores:.2f} s over {cores} cores")
     return lines
 
 

@@ -9,6 +9,8 @@ import pytest
 
 from conftest import load_script
 
+from octcl.host.threads import available_cores
+
 
 def report(aim_s: float) -> dict:
     """A linear run's report: stage 1 (two candidates' steps) and the decode end 4.0 s after the start,
@@ -42,7 +44,7 @@ def test_the_table_gives_each_trees_median_parts():
     assert lines[2] == "| x | 4.40 (4.40) / 4.30 / 0.9999000 |"
     assert "0:a: median wall 4.60 s over 3 targets, longest 4.80 s" in lines[-1]
     assert "aim 0.70" in lines[-1] and "after the write 0.30" in lines[-1]
-    cores = script.cores()
+    cores = available_cores()
     assert f"median CPU 9.20 s a run, {9.2 / cores:.2f} s over {cores} cores" in lines[-1]
 
 
